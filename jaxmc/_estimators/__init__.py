@@ -1,0 +1,1 @@
+"""The estimator family; public names are re-exported by `jaxmc.estimators`."""

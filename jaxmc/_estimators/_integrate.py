@@ -1,0 +1,2 @@
+def integrate(*args, **kwargs):
+    raise NotImplementedError("being written")

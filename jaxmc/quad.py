@@ -1,0 +1,1 @@
+"""Deterministic quadrature baselines (eq. 1, 2). Being written."""

@@ -1,0 +1,238 @@
+r"""Estimates with error bars, their combination, and mergeable running moments.
+
+An `Estimate` is what every estimator returns: the integral estimate, the
+estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$,
+eq. 13 of the lecture), the number of integrand evaluations and the number of
+them whose value was not finite.
+
+`Moments` are the sufficient statistics `(count, mean, m2)` of a stream of
+values, where `m2` is the sum of squared deviations from the mean. Two sets
+merge exactly with the parallel update of Chan, Golub and LeVeque (1979):
+
+$$\delta = \bar x_b - \bar x_a,\quad n = n_a + n_b,\quad
+\bar x = \bar x_a + \delta\, n_b/n,\quad M_2 = M_{2,a} + M_{2,b} + \delta^2 n_a n_b/n.$$
+
+Merging per-block moments instead of keeping one running sum keeps float32
+accurate over $10^9$ samples: each block's mean is a short sum, and the merge
+never adds a small number to a huge one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import gammaincc, ndtri
+
+
+class Estimate(eqx.Module):
+    r"""A Monte Carlo estimate and its error.
+
+    **Fields:**
+
+    - `mean`: the integral estimate, with the shape of the integrand's output.
+    - `variance`: estimated variance of `mean` (for i.i.d. samples $s^2/n$, eq. 13).
+    - `n`: number of integrand evaluations.
+    - `n_nonfinite`: evaluations whose weighted value $f/p$ was not finite; they
+      contributed zero to `mean`.
+    """
+
+    mean: jax.Array
+    variance: jax.Array
+    n: jax.Array
+    n_nonfinite: jax.Array
+
+    @property
+    def stderr(self) -> jax.Array:
+        """Standard error $\\sqrt{\\mathrm{variance}}$."""
+        return jnp.sqrt(self.variance)
+
+    def interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
+        r"""Normal-approximation (CLT) interval $\mathrm{mean} \pm z_{(1+\ell)/2}\,\mathrm{stderr}$."""
+        _check_level(level)
+        z = ndtri(jnp.asarray(0.5 + level / 2, dtype=jnp.result_type(self.mean)))
+        half = z * self.stderr
+        return self.mean - half, self.mean + half
+
+    def chebyshev(self, delta: float) -> jax.Array:
+        r"""Half-width $\varepsilon$ with $P(|\mathrm{mean} - I| \ge \varepsilon) \le \delta$.
+
+        Chebyshev's inequality (eq. 14): $\varepsilon = \sqrt{\mathrm{variance}/\delta}$.
+        Holds for any distribution with finite variance, so it is wider than
+        `interval` but needs no normality.
+        """
+        if not isinstance(delta, jax.core.Tracer) and not 0 < float(delta) <= 1:
+            raise ValueError(f"`delta` must be in (0, 1], got {delta}.")
+        return jnp.sqrt(self.variance / delta)
+
+
+class Combined(Estimate):
+    r"""Inverse-variance weighted combination of independent estimates.
+
+    On top of `Estimate`'s fields: `chi2_dof`, the $\chi^2$ of the parts about
+    the combined mean per degree of freedom (near 1 when the parts agree within
+    their error bars), `q`, the probability that a $\chi^2$ variable with that
+    many degrees of freedom is at least as large (tiny $q$ means the parts
+    disagree, e.g. an adaptive density missed a peak), and `parts`, the inputs
+    stacked along a leading axis.
+    """
+
+    chi2_dof: jax.Array
+    q: jax.Array
+    parts: Estimate
+
+
+def _check_level(level: float) -> None:
+    if not isinstance(level, jax.core.Tracer) and not 0 < float(level) < 1:
+        raise ValueError(f"`level` must be in (0, 1), got {level}.")
+
+
+def _stack(estimates: Estimate | Sequence[Estimate]) -> Estimate:
+    if isinstance(estimates, Estimate):
+        parts = estimates
+        if jnp.ndim(parts.n) != 1:
+            raise ValueError(
+                "`estimates` given as one Estimate must be stacked along a leading axis "
+                f"(e.g. from jax.vmap), got n of shape {jnp.shape(parts.n)}."
+            )
+        return Estimate(parts.mean, parts.variance, parts.n, parts.n_nonfinite)
+    estimates = list(estimates)
+    if not estimates or not all(isinstance(e, Estimate) for e in estimates):
+        raise TypeError("`estimates` must be a non-empty sequence of Estimate or a stacked Estimate.")
+    plain = [Estimate(e.mean, e.variance, e.n, e.n_nonfinite) for e in estimates]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *plain)
+
+
+def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
+    r"""Combine independent estimates of the same integral by inverse-variance weights.
+
+    With $w_i = 1/V_i$: $\bar I = \sum_i w_i I_i / \sum_i w_i$, $V = 1/\sum_i w_i$,
+    and $\chi^2 = \sum_i w_i (I_i - \bar I)^2$ with $k - 1$ degrees of freedom
+    ($k$ parts), as vegas reports across its iterations. For array-valued
+    estimates each component is combined on its own and the $\chi^2$ is summed
+    over components (with $(k-1)\cdot$size degrees of freedom).
+
+    A part with zero variance (e.g. an exact zero-variance density) dominates:
+    the combined mean is the mean of the zero-variance parts.
+
+    **Arguments:**
+
+    - `estimates`: a sequence of `Estimate`s, or one `Estimate` stacked along a
+      leading axis.
+
+    **Returns:** a `Combined`.
+    """
+    parts = _stack(estimates)
+    k = parts.n.shape[0]
+    var = parts.variance
+    exact = var <= 0
+    any_exact = jnp.any(exact, axis=0)
+    # Zero-variance parts get all the weight among themselves.
+    w = jnp.where(any_exact, exact.astype(var.dtype), 1.0 / jnp.where(exact, 1.0, var))
+    wsum = jnp.sum(w, axis=0)
+    mean = jnp.sum(w * parts.mean, axis=0) / wsum
+    variance = jnp.where(any_exact, 0.0, 1.0 / wsum)
+    chi2_terms = jnp.where(exact, 0.0, (parts.mean - mean) ** 2 / jnp.where(exact, 1.0, var))
+    chi2 = jnp.sum(chi2_terms)
+    dof = (k - 1) * max(int(np.prod(mean.shape)), 1)
+    if dof > 0:
+        chi2_dof = chi2 / dof
+        q = gammaincc(dof / 2.0, chi2 / 2.0)
+    else:
+        chi2_dof = jnp.zeros_like(chi2)
+        q = jnp.ones_like(chi2)
+    return Combined(
+        mean=mean,
+        variance=variance,
+        n=jnp.sum(parts.n),
+        n_nonfinite=jnp.sum(parts.n_nonfinite),
+        chi2_dof=chi2_dof,
+        q=q,
+        parts=parts,
+    )
+
+
+class Moments(NamedTuple):
+    """Mergeable sufficient statistics of a stream of values.
+
+    `count` is a float (so weights and huge counts need no integer overflow
+    care); `mean` and `m2` have the shape of one value.
+    """
+
+    count: jax.Array
+    mean: jax.Array
+    m2: jax.Array
+
+
+def moments(values: jax.Array, mask: jax.Array | None = None) -> Moments:
+    """Moments of `values` along axis 0 (two-pass: mean, then centred squares).
+
+    `mask` (shape `(n,)`, bool) selects which rows count.
+    """
+    values = jnp.asarray(values)
+    if mask is None:
+        count = jnp.asarray(values.shape[0], dtype=values.dtype)
+        mean = jnp.mean(values, axis=0)
+        m2 = jnp.sum((values - mean) ** 2, axis=0)
+        return Moments(count, mean, m2)
+    m = jnp.reshape(mask, mask.shape + (1,) * (values.ndim - 1)).astype(values.dtype)
+    count = jnp.sum(mask).astype(values.dtype)
+    safe = jnp.maximum(count, 1)
+    mean = jnp.sum(values * m, axis=0) / safe
+    m2 = jnp.sum(m * (values - mean) ** 2, axis=0)
+    return Moments(count, mean, m2)
+
+
+def merge(a: Moments, b: Moments) -> Moments:
+    """Chan et al.'s exact merge of two sets of moments (either may be empty)."""
+    count = a.count + b.count
+    safe = jnp.where(count > 0, count, 1)
+    delta = b.mean - a.mean
+    frac_b = b.count / safe
+    mean = a.mean + delta * frac_b
+    m2 = a.m2 + b.m2 + delta**2 * a.count * frac_b
+    return Moments(count, mean, m2)
+
+
+def merge_all(stacked: Moments) -> Moments:
+    """Merge moments stacked along axis 0 by a balanced pairwise tree.
+
+    The tree keeps rounding error at $O(\\log k)$ merges deep for $k$ parts.
+    """
+    k = stacked.count.shape[0]
+    while k > 1:
+        half = k // 2
+        first = jax.tree.map(lambda x: x[:half], stacked)
+        second = jax.tree.map(lambda x: x[half : 2 * half], stacked)
+        merged = merge(first, second)
+        if k % 2:
+            rest = jax.tree.map(lambda x: x[2 * half :], stacked)
+            merged = jax.tree.map(lambda x, y: jnp.concatenate([x, y]), merged, rest)
+        stacked = merged
+        k = stacked.count.shape[0]
+    return jax.tree.map(lambda x: x[0], stacked)
+
+
+def empty_moments(shape: tuple[int, ...], dtype) -> Moments:
+    zero = jnp.zeros(shape, dtype)
+    return Moments(jnp.zeros((), dtype), zero, zero)
+
+
+def estimate_from_moments(m: Moments, n: jax.Array, n_nonfinite: jax.Array) -> Estimate:
+    """The i.i.d. estimate: mean, and variance of the mean $s^2/n$ with $s^2 = M_2/(n-1)$."""
+    count = m.count
+    var = m.m2 / jnp.maximum(count - 1, 1) / jnp.maximum(count, 1)
+    var = jnp.where(count > 1, var, jnp.inf)
+    return Estimate(mean=m.mean, variance=var, n=n, n_nonfinite=n_nonfinite)
+
+
+def estimate_iid(y: jax.Array, bad: jax.Array) -> Estimate:
+    """The basic estimate from per-sample values `y` (shape `(n, ...)`), eq. 12 and 13."""
+    n = y.shape[0]
+    return estimate_from_moments(
+        moments(y), jnp.asarray(n, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
+    )
