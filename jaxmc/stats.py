@@ -192,10 +192,15 @@ def merge(a: Moments, b: Moments) -> Moments:
     count = a.count + b.count
     safe = jnp.where(count > 0, count, 1)
     delta = b.mean - a.mean
-    frac_b = b.count / safe
+    frac_b = _expand(b.count / safe, delta)
     mean = a.mean + delta * frac_b
-    m2 = a.m2 + b.m2 + delta**2 * a.count * frac_b
+    m2 = a.m2 + b.m2 + delta**2 * _expand(a.count, delta) * frac_b
     return Moments(count, mean, m2)
+
+
+def _expand(count: jax.Array, like: jax.Array) -> jax.Array:
+    """Append unit axes so per-row counts broadcast against per-row values."""
+    return jnp.reshape(count, jnp.shape(count) + (1,) * (jnp.ndim(like) - jnp.ndim(count)))
 
 
 def merge_all(stacked: Moments) -> Moments:
@@ -224,7 +229,7 @@ def empty_moments(shape: tuple[int, ...], dtype) -> Moments:
 
 def estimate_from_moments(m: Moments, n: jax.Array, n_nonfinite: jax.Array) -> Estimate:
     """The i.i.d. estimate: mean, and variance of the mean $s^2/n$ with $s^2 = M_2/(n-1)$."""
-    count = m.count
+    count = _expand(m.count, m.m2)
     var = m.m2 / jnp.maximum(count - 1, 1) / jnp.maximum(count, 1)
     var = jnp.where(count > 1, var, jnp.inf)
     return Estimate(mean=m.mean, variance=var, n=n, n_nonfinite=n_nonfinite)

@@ -1,0 +1,115 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+
+from jaxmc.stats import Combined, Estimate, combine, merge, merge_all, moments
+
+
+def _estimate(mean, variance, n=100):
+    return Estimate(jnp.asarray(mean), jnp.asarray(variance), jnp.asarray(n), jnp.asarray(0))
+
+
+def test_interval_and_chebyshev_match_formulas():
+    est = _estimate(2.0, 0.25)
+    low, high = est.interval(0.95)
+    z = scipy.stats.norm.ppf(0.975)
+    np.testing.assert_allclose([low, high], [2 - z * 0.5, 2 + z * 0.5], rtol=1e-12)
+    # eq. 14: eps = sqrt(V / delta)
+    np.testing.assert_allclose(est.chebyshev(0.05), np.sqrt(0.25 / 0.05), rtol=1e-12)
+    np.testing.assert_allclose(est.stderr, 0.5)
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.0, 1.5, -0.1])
+def test_interval_rejects_bad_level(bad):
+    with pytest.raises(ValueError, match="level"):
+        _estimate(0.0, 1.0).interval(bad)
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.5])
+def test_chebyshev_rejects_bad_delta(bad):
+    with pytest.raises(ValueError, match="delta"):
+        _estimate(0.0, 1.0).chebyshev(bad)
+
+
+def test_combine_inverse_variance_weights_and_chi2():
+    means = np.array([1.0, 1.2, 0.9])
+    variances = np.array([0.01, 0.04, 0.02])
+    out = combine([_estimate(m, v) for m, v in zip(means, variances)])
+    assert isinstance(out, Combined)
+    w = 1 / variances
+    mean = np.sum(w * means) / np.sum(w)
+    chi2 = np.sum(w * (means - mean) ** 2)
+    np.testing.assert_allclose(out.mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(out.variance, 1 / np.sum(w), rtol=1e-12)
+    np.testing.assert_allclose(out.chi2_dof, chi2 / 2, rtol=1e-12)
+    np.testing.assert_allclose(out.q, scipy.stats.chi2.sf(chi2, 2), rtol=1e-10)
+    assert out.n == 300
+    np.testing.assert_allclose(out.parts.mean, means)
+
+
+def test_combine_stacked_vector_valued():
+    stacked = Estimate(
+        jnp.array([[1.0, 2.0], [1.1, 2.2]]),
+        jnp.array([[0.01, 0.04], [0.01, 0.04]]),
+        jnp.array([10, 10]),
+        jnp.array([0, 1]),
+    )
+    out = combine(stacked)
+    np.testing.assert_allclose(out.mean, [1.05, 2.1])
+    np.testing.assert_allclose(out.variance, [0.005, 0.02])
+    chi2 = 0.05**2 / 0.01 * 2 + 0.1**2 / 0.04 * 2
+    np.testing.assert_allclose(out.chi2_dof, chi2 / 2)  # (k - 1) * 2 components
+    assert out.n_nonfinite == 1
+
+
+def test_combine_is_calibrated_for_agreeing_parts():
+    # Parts drawn from their stated error bars: q must be uniform, chi2_dof near 1.
+    key = jax.random.key(3)
+    k, parts = 4000, 5
+    sigma = jnp.array([0.1, 0.2, 0.3, 0.4, 0.5])
+    means = 1.0 + sigma * jax.random.normal(key, (k, parts))
+
+    def one(m):
+        return combine(Estimate(m, sigma**2, jnp.full(parts, 10), jnp.zeros(parts, int)))
+
+    out = jax.vmap(one)(means)
+    np.testing.assert_allclose(jnp.mean(out.chi2_dof), 1.0, atol=5 * np.sqrt(2 / 4 / k))
+    assert scipy.stats.kstest(np.asarray(out.q), "uniform").pvalue > 1e-4
+    z = (out.mean - 1.0) / out.stderr
+    np.testing.assert_allclose(jnp.std(z), 1.0, atol=5 / np.sqrt(2 * k))
+
+
+def test_combine_zero_variance_part_dominates():
+    out = combine([_estimate(1.0, 0.0), _estimate(3.0, 1.0)])
+    assert out.mean == 1.0 and out.variance == 0.0
+
+
+def test_combine_rejects_bad_input():
+    with pytest.raises(TypeError, match="estimates"):
+        combine([])
+    with pytest.raises(ValueError, match="stacked"):
+        combine(_estimate(1.0, 1.0))
+
+
+def test_chan_merge_is_exact():
+    x = np.random.default_rng(0).normal(3.0, 2.0, size=(1000, 3))
+    a, b = moments(jnp.asarray(x[:300])), moments(jnp.asarray(x[300:]))
+    m = merge(a, b)
+    np.testing.assert_allclose(m.mean, x.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(m.m2, ((x - x.mean(0)) ** 2).sum(0), rtol=1e-10)
+    parts = [moments(jnp.asarray(c)) for c in np.split(x, 8)]
+    stacked = jax.tree.map(lambda *t: jnp.stack(t[:7]), *parts)  # 7: an odd tree
+    x = x[:875]
+    tree = merge_all(stacked)
+    np.testing.assert_allclose(tree.count, 875)
+    np.testing.assert_allclose(tree.m2, ((x - x.mean(0)) ** 2).sum(0), rtol=1e-10)
+
+
+def test_merge_with_empty_side():
+    a = moments(jnp.arange(5.0))
+    empty = moments(jnp.arange(5.0), mask=jnp.zeros(5, bool))
+    for m in (merge(a, empty), merge(empty, a)):
+        np.testing.assert_allclose(m.mean, 2.0)
+        np.testing.assert_allclose(m.m2, 10.0)
