@@ -41,18 +41,20 @@ def test_fixed_n_counts_exactly_and_vector_valued():
     assert np.all(np.abs(est.mean - exact) < 5 * est.stderr)
 
 
-@pytest.mark.parametrize("method", ["plain"])
+@pytest.mark.parametrize("method", ["plain", "qmc", "stratified"])
 def test_chunk_invariance_and_determinism(method):
     key = jax.random.key(3)
+    # A discontinuous integrand, so that no method is exact to rounding.
+    g = lambda x: jnp.exp(jnp.sum(x)) * (x[0] < 0.37)
     runs = [
-        jaxmc.integrate(key, F, LO, HI, n=200_000, method=method, chunk=chunk)
+        jaxmc.integrate(key, g, LO, HI, n=200_000, method=method, chunk=chunk)
         for chunk in (1, 2**15, 2**17, 2**20)
     ]
     for est in runs[1:]:
         np.testing.assert_allclose(est.mean, runs[0].mean, rtol=1e-12)
         np.testing.assert_allclose(est.variance, runs[0].variance, rtol=1e-9)
         assert est.n == runs[0].n
-    again = jaxmc.integrate(key, F, LO, HI, n=200_000, method=method, chunk=2**15)
+    again = jaxmc.integrate(key, g, LO, HI, n=200_000, method=method, chunk=2**15)
     assert again.mean == runs[1].mean
 
 
@@ -61,6 +63,30 @@ def test_reported_variance_honest_over_keys():
     ests = jax.vmap(lambda k: jaxmc.integrate(k, F, LO, HI, n=2000, method="plain"))(keys)
     ratio = np.var(np.asarray(ests.mean), ddof=1) / np.mean(np.asarray(ests.variance))
     assert abs(ratio - 1) < 5 * np.sqrt(2 / 499)
+
+
+@pytest.mark.parametrize("method", ["qmc", "stratified"])
+def test_block_methods_unbiased_honest_and_better_than_plain(method):
+    # Each block is one independent randomisation; the variance comes from block means.
+    f = lambda x: jnp.prod(jnp.cos(x))
+    exact = np.sin(1.0) ** 3
+    keys = jax.random.split(jax.random.key(9), 200)
+    run = lambda m: jax.vmap(lambda k: jaxmc.integrate(k, f, LO, HI, n=2**12, method=m))(keys)
+    ests, plain = run(method), run("plain")
+    means = np.asarray(ests.mean)
+    z = (means - exact) / np.sqrt(np.asarray(ests.variance))
+    assert abs(np.mean(means - exact)) < 5 * np.std(means) / np.sqrt(200)
+    # 8 blocks: the t-like z has sd sqrt(7/5) ≈ 1.18; an optimistic variance would inflate it.
+    assert 0.8 < np.std(z) < 1.6
+    assert np.var(means) < np.var(np.asarray(plain.mean)) / 4
+
+
+def test_auto_uses_qmc_in_low_dimension():
+    f = lambda x: jnp.prod(jnp.cos(x))
+    key = jax.random.key(10)
+    auto = jaxmc.integrate(key, f, LO, HI, n=2**14)
+    qmc = jaxmc.integrate(key, f, LO, HI, n=2**14, method="qmc")
+    assert auto.mean == qmc.mean
 
 
 def test_grad_with_fixed_budget():

@@ -239,7 +239,11 @@ def _block_moments(y: jax.Array, valid: jax.Array) -> Moments:
     """Moments of one block by a two-level reduction (lanes of 128, then a tree)."""
     block = y.shape[0]
     lane = min(_LANE, block)
-    rows = block // lane
+    rows = -(-block // lane)
+    if rows * lane != block:  # e.g. a jittered grid of 25^3 points: pad with invalid rows
+        pad = rows * lane - block
+        y = jnp.concatenate([y, jnp.zeros((pad,) + y.shape[1:], y.dtype)])
+        valid = jnp.concatenate([valid, jnp.zeros(pad, bool)])
     y2 = y.reshape((rows, lane) + y.shape[1:])
     v2 = valid.reshape(rows, lane)
     mask = v2.reshape(v2.shape + (1,) * (y.ndim - 1)).astype(y.dtype)
