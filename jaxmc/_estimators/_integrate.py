@@ -218,7 +218,7 @@ def _plan(method: str, budget: int, chunk: int, devices: int, d: int) -> _Plan:
             block = per_axis**d
         blocks = budget // block
         budget = blocks * block
-    per_step = max(1, -(-chunk // block))
+    per_step = min(max(1, -(-chunk // block)), blocks)  # never more blocks than the budget
     per_device = -(-per_step // devices)
     steps = -(-blocks // (per_device * devices))
     return _Plan(block, blocks, budget, per_device, steps, strata)
@@ -286,17 +286,22 @@ def _integrate(key, lo, hi, rtol, atol, *, f, method, plan, mesh, tolerant, prog
             m = Moments(jnp.where(m.count > 0, 1.0, 0.0).astype(dtype), m.mean, jnp.zeros_like(m.m2))
         return m, jnp.sum(valid, dtype=jnp.int32), jnp.sum(bad & valid, dtype=jnp.int32)
 
+    single = mesh.devices.size == 1
+
     def local(t):
         # Device j of the mesh takes blocks [j * per_device, (j + 1) * per_device) of step t.
-        first = (t * mesh.devices.size + jax.lax.axis_index(axes)) * plan.per_device
+        device = 0 if single else jax.lax.axis_index(axes)
+        first = (t * mesh.devices.size + device) * plan.per_device
         blocks = first + jnp.arange(plan.per_device, dtype=jnp.int32)
         m, evaluations, bad = jax.vmap(block_moments)(blocks)
         m = merge_all(m)
-        total = _device_merge(m, axes)
         evaluations, bad = jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
-        return total, jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
+        if single:
+            return m, evaluations, bad
+        return _device_merge(m, axes), jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
 
-    sharded = jax.shard_map(
+    # One device needs no collectives; skipping shard_map there keeps compiles short.
+    sharded = local if single else jax.shard_map(
         local, mesh=mesh, in_specs=PartitionSpec(), out_specs=PartitionSpec()
     )
     out_shape = jax.eval_shape(lambda: block_moments(jnp.int32(0))[0].mean).shape
