@@ -3,15 +3,26 @@
 import importlib.metadata
 
 from . import (
+    distributions as distributions,
     estimators as estimators,
+    fit as fit,
     points as points,
     proposals as proposals,
     quad as quad,
+    render as render,
     stats as stats,
+    testing as testing,
+    warps as warps,
 )
 from .estimators import (
+    antithetic as antithetic,
+    control_variate as control_variate,
     importance as importance,
     integrate as integrate,
+    mis as mis,
+    mis_one_sample as mis_one_sample,
+    randomized_qmc as randomized_qmc,
+    stratified as stratified,
     uniform as uniform,
 )
 from .stats import Combined as Combined, Estimate as Estimate, combine as combine

@@ -1,0 +1,189 @@
+r"""Randomised quasi-Monte Carlo: independent randomisations of a low-discrepancy set."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import betainc
+
+from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
+from ..stats import Estimate, _check_level
+
+
+POINT_SETS = ("sobol", "halton", "lattice", "latin_hypercube", "stratified")
+
+
+@jax.jit
+def student_t_quantile(p: Any, dof: Any) -> jax.Array:
+    r"""The quantile $t_{\nu}^{-1}(p)$ of Student's t with $\nu$ = `dof` degrees of freedom.
+
+    For $p > 1/2$: $P(T > t) = \frac12 I_{\nu/(\nu+t^2)}(\nu/2, 1/2)$, so $x =
+    \nu/(\nu+t^2)$ solves $I_x(\nu/2, 1/2) = 2(1-p)$; found by bisection (60
+    halvings, monotone in $x$), then $t = \sqrt{\nu(1-x)/x}$. Works under `jit`
+    and needs no SciPy at run time.
+    """
+    p = jnp.asarray(p, dtype=jnp.result_type(float))
+    dof = jnp.asarray(dof, dtype=p.dtype)
+    upper = jnp.where(p > 0.5, p, 1.0 - p)
+    target = 2.0 * (1.0 - upper)
+
+    def body(_, bounds):
+        a, b = bounds
+        mid = 0.5 * (a + b)
+        below = betainc(dof / 2, 0.5, mid) < target
+        return jnp.where(below, mid, a), jnp.where(below, b, mid)
+
+    a, b = jax.lax.fori_loop(0, 60, body, (jnp.zeros_like(p), jnp.ones_like(p)))
+    x = 0.5 * (a + b)
+    t = jnp.sqrt(dof * (1.0 - x) / x)
+    return jnp.where(p > 0.5, t, -t)
+
+
+class QMCEstimate(Estimate):
+    r"""A randomised-QMC `Estimate` that remembers its number of `replicas`.
+
+    `variance` is $s^2/R$ from the spread of the $R$ replica means. With few
+    replicas the normal interval of `Estimate.interval` is too narrow; use
+    `t_interval`, Student's t with $R - 1$ degrees of freedom, as
+    `scipy.integrate.qmc_quad` reports.
+    """
+
+    replicas: int = eqx.field(static=True)
+
+    def t_interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
+        r"""$\mathrm{mean} \pm t_{R-1,(1+\ell)/2}\,\mathrm{stderr}$ (infinite for one replica)."""
+        _check_level(level)
+        if self.replicas < 2:
+            inf = jnp.full_like(self.mean, jnp.inf)
+            return self.mean - inf, self.mean + inf
+        t = student_t_quantile(0.5 + level / 2, self.replicas - 1).astype(jnp.result_type(self.mean))
+        half = t * self.stderr
+        return self.mean - half, self.mean + half
+
+
+def _grid_counts(n: int, d: int) -> tuple[int, ...]:
+    m = round(n ** (1.0 / d))
+    for c in (m - 1, m, m + 1):
+        if c >= 1 and c**d == n:
+            return (c,) * d
+    lower = max(int(math.floor(n ** (1.0 / d))), 1)
+    raise ValueError(
+        f'`n` must be a perfect d-th power for points="stratified" (one point per cell of a '
+        f"cubic grid), got n={n} with d={d}; e.g. n={lower**d} or n={(lower + 1) ** d}. "
+        "For other grids pass a callable `points`."
+    )
+
+
+def _point_generator(points: Any, n: int, d: int) -> Callable[[jax.Array], jax.Array]:
+    """A function key -> `(n, d)` points for the named (or callable) point set."""
+    if callable(points):
+        return lambda k: points(k, n, d)
+    if not isinstance(points, str) or points not in POINT_SETS:
+        raise ValueError(
+            f"`points` must be one of {POINT_SETS} or a callable (key, n, d) -> (n, d), "
+            f"got {points!r}."
+        )
+    from .. import points as pts  # imported here: the point sets module imports estimators' peers
+
+    if points == "sobol":
+        return lambda k: pts.sobol(n, d, key=k)
+    if points == "halton":
+        return lambda k: pts.halton(n, d, key=k)
+    if points == "lattice":
+        return lambda k: pts.lattice(n, d, key=k)
+    if points == "latin_hypercube":
+        return lambda k: pts.latin_hypercube(k, n, d)
+    counts = _grid_counts(n, d)
+    return lambda k: pts.stratified(k, counts)
+
+
+def randomized_qmc(
+    key: jax.Array,
+    f: Callable,
+    lo: Any,
+    hi: Any,
+    n: int,
+    *,
+    points: str | Callable = "sobol",
+    replicas: int = 16,
+    batched: bool = False,
+) -> QMCEstimate:
+    r"""Randomised quasi-Monte Carlo: the mean over independent randomisations of a point set.
+
+    Each of the $R$ = `replicas` randomisations $u^{(r)}_1..u^{(r)}_n$ of an
+    $n$-point set (scrambled Sobol' by default) gives the equal-weight rule
+    $\hat I_r = \frac{V}{n}\sum_i f(lo + (hi - lo) u^{(r)}_i)$, unbiased because
+    every randomised point is marginally uniform. The $\hat I_r$ are i.i.d., so
+
+    $$\hat I = \frac1R \sum_r \hat I_r, \qquad \widehat V[\hat I] = \frac{s^2}{R},\quad
+    s^2 = \frac{1}{R-1}\sum_r (\hat I_r - \hat I)^2,$$
+
+    as in `scipy.integrate.qmc_quad` (Owen, *Practical Quasi-Monte Carlo
+    Integration*, ch. 17). For smooth $f$ the error of scrambled Sobol' decays
+    like $n^{-1}$ (up to logs) or faster, against plain MC's $n^{-1/2}$; keep $n$
+    a power of 2 for Sobol' (its balance properties hold for $2^m$ points).
+
+    **Arguments:**
+
+    - `key`: a PRNG key.
+    - `f`: the integrand, written for one point.
+    - `lo`, `hi`: the box.
+    - `n`: points per replica (static int).
+    - `points`: `"sobol"` (default), `"halton"`, `"lattice"` (randomly shifted
+      rank-1 lattice), `"latin_hypercube"`, `"stratified"` (jittered cubic grid;
+      `n` must be a $d$-th power), or a callable `(key, n, d) -> (n, d)` of
+      points on $[0,1)^d$, each marginally uniform.
+    - `replicas`: $R$, independent randomisations (static int; with 1 the
+      variance is `inf`). A few (8–32) suffice; more spend points on error bars.
+    - `batched`: if True, `f` receives all $nR$ points at once.
+
+    **Returns:** a `QMCEstimate` (an `Estimate`) with `n = n·R` evaluations;
+    `est.t_interval(0.95)` gives the Student-t interval with $R-1$ degrees of
+    freedom.
+
+    !!! Example
+
+        ```python
+        est = randomized_qmc(key, lambda x: jnp.prod(x), jnp.zeros(3), jnp.ones(3), 1024)
+        low, high = est.t_interval(0.95)
+        ```
+    """
+    key = check_key(key)
+    f = check_callable(f)
+    lo, hi = check_bounds(lo, hi)
+    n = check_count(n)
+    replicas = check_count(replicas, "replicas")
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    generate = _point_generator(points, n, d)
+    keys = jax.random.split(key, replicas)
+    u = jax.vmap(generate)(keys)
+    if u.shape != (replicas, n, d):
+        raise ValueError(
+            f"`points` must give an array of shape (n, d) = ({n}, {d}), got {u.shape[1:]}."
+        )
+    u = jnp.asarray(u, dtype=lo.dtype)
+    if lo.ndim == 0:
+        u = u[..., 0]
+    x = lo + (hi - lo) * u.reshape((replicas * n,) + lo.shape)
+    fx = evaluate(f, x, batched)
+    volume = jnp.prod(hi - lo)
+    y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (replicas * n,)))
+    per_replica = jnp.mean(y.reshape((replicas, n) + y.shape[1:]), axis=1)
+    mean = jnp.mean(per_replica, axis=0)
+    if replicas > 1:
+        variance = jnp.sum((per_replica - mean) ** 2, axis=0) / (replicas - 1) / replicas
+    else:
+        variance = jnp.full(mean.shape, jnp.inf, mean.dtype)
+    return QMCEstimate(
+        mean=mean,
+        variance=variance,
+        n=jnp.asarray(n * replicas, dtype=jnp.int32),
+        n_nonfinite=jnp.sum(bad, dtype=jnp.int32),
+        replicas=replicas,
+    )
+

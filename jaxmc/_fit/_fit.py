@@ -1,0 +1,417 @@
+r"""Fit a proposal to an integrand by minimising the importance estimator's variance.
+
+The importance estimator $f(X)/p(X)$, $X \sim p_\theta$, has variance
+$M_2(\theta) - I^2$ with second moment $M_2(\theta) = E_p[(f/p)^2] = \int f^2/p$,
+so minimising $M_2$ minimises the variance. `fit` hands a sample-average
+approximation of $\log M_2$ (or of another objective) to an optimistix
+minimiser, over the proposal's parameters — its inexact-array leaves apart from
+the box bounds (`eqx.partition`/`eqx.combine`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from .._checks import check_callable, check_choice, check_count, check_key, evaluate
+
+
+OBJECTIVES = ("variance", "chi2", "kl", "reverse_kl")
+
+
+class FitResult(eqx.Module):
+    """What `fit` returns.
+
+    **Fields:**
+
+    - `proposal`: the fitted proposal (same type as the input).
+    - `loss`: the objective at the fitted parameters, on the fit's samples (for
+      `"variance"` the log of the estimated second moment $\\log E_p[(f/p)^2]$;
+      for `"chi2"` $\\log(1 + \\chi^2)$; for `"kl"`/`"reverse_kl"` the divergence).
+    - `steps`: the number of solver steps taken.
+    - `result`: an `optimistix.RESULTS` item (`successful`, or why it stopped).
+    - `losses`: the loss at every step for `resample=True` (shape `(max_steps,)`),
+      else `None`.
+    """
+
+    proposal: Any
+    loss: jax.Array
+    steps: jax.Array
+    result: optx.RESULTS
+    losses: jax.Array | None = None
+
+
+def parameter_spec(proposal: Any) -> Any:
+    """The filter spec `fit` optimises: inexact arrays, except the box bounds `lo`/`hi`."""
+
+    def is_param(path, leaf):
+        if not eqx.is_inexact_array(leaf):
+            return False
+        name = getattr(path[-1], "name", None) if path else None
+        return name not in ("lo", "hi")
+
+    return jax.tree_util.tree_map_with_path(is_param, proposal)
+
+
+def _draw(proposal: Any, key: jax.Array, n: int):
+    draw = getattr(proposal, "_draw", None)
+    if draw is not None:
+        return draw(key, n)
+    x, pdf = proposal.sample(key, n)
+    log_p = jnp.log(pdf)
+    return x, log_p, jnp.full((n,), 1.0 / n, log_p.dtype)
+
+
+def _log_abs(fx: jax.Array) -> jax.Array:
+    """$\\log |f|$ per sample (the Euclidean norm for array-valued `f`), safe at 0."""
+    fx = jnp.reshape(fx, (fx.shape[0], -1))
+    sq = jnp.sum(fx**2, axis=-1)
+    ok = jnp.isfinite(sq) & (sq > 0)
+    return jnp.where(ok, 0.5 * jnp.log(jnp.where(ok, sq, 1.0)), -jnp.inf)
+
+
+def _wlse(a: jax.Array, w: jax.Array) -> jax.Array:
+    """$\\log \\sum_i w_i e^{a_i}$ with $-\\infty$ terms allowed."""
+    return jax.nn.logsumexp(a, b=w)
+
+
+def _objective(objective: str, logf, log_p, w, log_q=None):
+    r"""The objective from per-sample $\log|f|$, $\log p_\theta$, weights and optional $\log q$.
+
+    Without `log_q` the samples are reparameterised draws from $p_\theta$ itself
+    ($\sum_i w_i g(x_i) \approx E_p[g]$); with `log_q` they were drawn from a
+    frozen density $q$, and $E_p[g] = E_q[g\,p/q]$.
+    """
+    if log_q is None:
+        log_q = log_p
+        rev_w = w
+    else:
+        rev_w = w * jnp.exp(log_p - log_q)
+    if objective in ("variance", "chi2"):
+        # log E_q[f^2 / (p q)] = log of the second moment of f/p.
+        m2 = _wlse(2 * logf - log_p - log_q, w)
+        if objective == "variance":
+            return m2
+        log_i = _wlse(logf - log_q, w)
+        return m2 - 2 * log_i
+    if objective == "kl":
+        # D(p_f || p) with p_f = |f|/I, samples weighted by |f|/q (frozen).
+        lw = jax.lax.stop_gradient(logf - log_q)
+        log_i = jax.nn.logsumexp(lw, b=w)
+        nw = w * jnp.exp(lw - log_i)
+        safe_logf = jnp.where(nw > 0, logf, 0.0)
+        safe_logp = jnp.where(nw > 0, log_p, 0.0)
+        return jnp.sum(nw * (safe_logf - log_i - safe_logp))
+    # reverse_kl: D(p || p_f) = E_p[log p - log|f|] + log I.
+    floor = jax.lax.stop_gradient(jnp.max(logf)) - 70.0
+    lf = jnp.maximum(logf, floor)
+    log_i = jax.lax.stop_gradient(_wlse(logf - log_q, w))
+    return jnp.sum(rev_w * (log_p - lf)) + log_i
+
+
+def _defensive_count(defensive, n: int, objective: str) -> int:
+    if not (isinstance(defensive, (int, float)) and 0 <= defensive < 1):
+        raise ValueError(f"`defensive` must be a number in [0, 1), got {defensive!r}.")
+    if objective == "reverse_kl" or defensive == 0:
+        return 0
+    n_def = int(round(defensive * n))
+    if not 1 <= n_def < n:
+        raise ValueError(
+            f"`n` = {n} is too small for `defensive` = {defensive}: need at least one "
+            "defensive and one proposal sample."
+        )
+    return n_def
+
+
+def _defensive_draw(prop, key, n: int, n_def: int, eps: float):
+    r"""Draw from $m = (1-\epsilon) p_\theta + \epsilon\,U$ stratified: `n - n_def` from $p_\theta$ (moving
+    with $\theta$), `n_def` uniform on the box (fixed). Returns `(x, log p, log m, weights)`;
+    $\sum_i w_i g(x_i)/m(x_i)$ estimates $\int g$ (balance-heuristic MIS).
+    """
+    key_p, key_u = jax.random.split(key)
+    x_p, _, w_p = _draw(prop, key_p, n - n_def)
+    lo, hi = jnp.asarray(prop.lo), jnp.asarray(prop.hi)
+    u = jax.random.uniform(key_u, (n_def,) + lo.shape, dtype=lo.dtype)
+    x_u = lo + (hi - lo) * u
+    x = jnp.concatenate([x_p, x_u], axis=0)
+    log_p = prop.log_pdf(x)
+    log_vol = jnp.sum(jnp.log(hi - lo))
+    log_m = jnp.logaddexp(jnp.log1p(-eps) + log_p, jnp.log(eps) - log_vol)
+    w = jnp.concatenate([(1 - eps) * w_p, jnp.full((n_def,), eps / n_def, w_p.dtype)])
+    return x, log_p, log_m, w
+
+
+# Above this many parameters the default is L-BFGS: BFGS keeps a dense inverse Hessian
+# (a flow's ~10^4-10^5 parameters would need ~10^9-10^10 entries).
+_DENSE_BFGS_MAX = 2000
+
+
+def _check_solver(solver, params=None):
+    if solver is None:
+        size = sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
+        if size > _DENSE_BFGS_MAX:
+            return optx.LBFGS(rtol=1e-5, atol=1e-5)
+        return optx.BFGS(rtol=1e-5, atol=1e-5)
+    if not isinstance(solver, optx.AbstractMinimiser):
+        raise TypeError(
+            f"`solver` must be an optimistix.AbstractMinimiser (e.g. optimistix.BFGS), "
+            f"got {type(solver).__name__}."
+        )
+    return solver
+
+
+def _split(proposal, filter_spec):
+    spec = parameter_spec(proposal) if filter_spec is None else filter_spec
+    params, static = eqx.partition(proposal, spec)
+    if not jax.tree_util.tree_leaves(params):
+        raise ValueError(
+            f"`proposal` ({type(proposal).__name__}) has no parameters to fit "
+            "(no inexact-array leaves besides lo/hi)."
+        )
+    return params, static
+
+
+def _check_proposal(proposal):
+    if not (
+        callable(getattr(proposal, "sample", None)) and callable(getattr(proposal, "log_pdf", None))
+    ):
+        raise TypeError(
+            "`proposal` must have sample(key, n) -> (x, pdf) and log_pdf(x), got "
+            f"{type(proposal).__name__}."
+        )
+    return proposal
+
+
+def _minimise(loss, solver, params, args, max_steps, throw=False):
+    sol = optx.minimise(loss, solver, params, args, max_steps=max_steps, throw=throw)
+    return sol.value, sol.result, sol.stats["num_steps"]
+
+
+def _run_steps(fn_args, loss, solver, params, max_steps):
+    """A fixed number of solver steps with fresh `args` per step (stochastic objectives).
+
+    `fn_args(step, params) -> args` draws the step's base randomness (from a key
+    folded with the step index) or its frozen samples.
+    """
+    aux_fn = lambda y, args: (loss(y, args), None)
+    args0 = fn_args(0, params)
+    f_struct = jax.eval_shape(lambda: loss(params, args0))
+    state = solver.init(aux_fn, params, args0, {}, f_struct, None, frozenset())
+
+    def body(carry, i):
+        y, st = carry
+        args = fn_args(i, y)
+        value = loss(y, args)
+        y, st, _ = solver.step(aux_fn, y, args, {}, st, frozenset())
+        return (y, st), value
+
+    (params, _), losses = jax.lax.scan(body, (params, state), jnp.arange(max_steps))
+    return params, losses
+
+
+def fit(
+    key: jax.Array,
+    f: Callable,
+    proposal: Any,
+    n: int,
+    *,
+    solver: optx.AbstractMinimiser | None = None,
+    objective: str = "variance",
+    max_steps: int = 256,
+    batched: bool = False,
+    reuse: bool = False,
+    resample: bool = False,
+    filter_spec: Any = None,
+    defensive: float = 0.1,
+) -> FitResult:
+    r"""Fit `proposal` to `f` by minimising the importance estimator's variance.
+
+    The default objective is the log of the second moment
+    $$L(\theta) = \log \sum_i w_i \frac{f(x_i)^2}{p_\theta(x_i)^2},\qquad
+    x_i = T_\theta(u_i),$$
+    a sample average over `n` reparameterised draws with the base randomness
+    $u_i$ fixed by `key` (passed to the solver as `args`; by default a share
+    `defensive` of them uniform on the box, see below), so $L$ is a
+    deterministic, differentiable function of $\theta$ — what BFGS's line
+    search assumes. It is evaluated with `logsumexp` in log space, so it is
+    scale-free and does not overflow. Its minimiser is that of the variance
+    $E_p[(f/p)^2] - I^2$.
+
+    Other objectives (neural importance sampling, Müller et al. 2019, with
+    $p_f = |f|/I$):
+
+    - `"chi2"`: Pearson $\chi^2(p_f \| p) = E_p[(f/p)^2]/I^2 - 1$ (reported as
+      $\log(1 + \chi^2)$); same minimiser as the variance, scale-normalised.
+    - `"kl"`: $D_{KL}(p_f \| p_\theta)$, estimated on `n` samples drawn once from
+      the initial proposal $q$ with weights $|f|/q$ (with `resample=True`:
+      redrawn from the current proposal at each step).
+    - `"reverse_kl"`: $D_{KL}(p_\theta \| p_f) = E_p[\log p - \log|f|] + \log I$
+      (mode-seeking; $\log|f|$ floored at $e^{-70}$ times its maximum).
+
+    With `reuse=True` the `n` samples are drawn once from the initial (frozen)
+    proposal $q$ and `f` is evaluated once; the objective then reweights them
+    ($E_p[f^2/p^2] = E_q[f^2/(p\,q)]$) at every step — for expensive integrands
+    (`fit_on_samples` does this for samples you already have).
+
+    **Arguments:**
+
+    - `key`: a PRNG key (fixes the base samples).
+    - `f`: the integrand, written for one point (or a batch with `batched=True`).
+    - `proposal`: a jaxmc proposal (`GaussianMixture`, `Grid`, `Flow`,
+      `Mixture`, or any equinox Module with `sample`/`log_pdf`).
+    - `n`: samples in the objective (static int).
+    - `solver`: any `optimistix.AbstractMinimiser`; default
+      `optimistix.BFGS(rtol=1e-5, atol=1e-5)` (`optimistix.LBFGS` above 2000
+      parameters, e.g. for a `Flow`). With stochastic solvers such as
+      `optimistix.OptaxMinimiser(optax.adam(1e-2), rtol=0, atol=0)` pass
+      `resample=True` to redraw the base samples at every step.
+    - `objective`: `"variance"` (default), `"chi2"`, `"kl"` or `"reverse_kl"`.
+    - `max_steps`: solver step limit (with `resample=True`, the exact number).
+    - `batched`: `f` takes a batch.
+    - `reuse`: fit on one batch from the frozen initial proposal.
+    - `resample`: run exactly `max_steps` solver steps, each on fresh base
+      samples (key folded with the step index); for stochastic optimisers.
+    - `filter_spec`: which leaves to optimise (default: inexact arrays except
+      `lo`/`hi`, see `parameter_spec`).
+    - `defensive`: the share $\epsilon$ of the reparameterised objective's
+      samples drawn uniformly on the box (fixed) instead of from $p_\theta$; the
+      objective then estimates $\int f^2/p_\theta$ by MIS over
+      $m = (1-\epsilon)p_\theta + \epsilon U$. Without it a sample average over
+      moving samples can "win" by moving every sample off the peak (where
+      $f \approx 0$); the fixed uniform samples keep a starved peak expensive.
+      `0` disables it; ignored for `"reverse_kl"` and frozen samples.
+
+    **Returns:** a `FitResult`. Solver failures (e.g. `max_steps` reached) are
+    reported in `result`, not raised.
+
+    !!! Example
+
+        ```python
+        f = lambda x: jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.01)
+        g = jaxmc.proposals.GaussianMixture(jax.random.key(1), jnp.zeros(2), jnp.ones(2), 4)
+        res = jaxmc.fit.fit(jax.random.key(0), f, g, 2048)
+        jaxmc.importance(jax.random.key(2), f, res.proposal, 10_000)
+        ```
+    """
+    key = check_key(key)
+    f = check_callable(f)
+    proposal = _check_proposal(proposal)
+    n = check_count(n)
+    max_steps = check_count(max_steps, "max_steps")
+    objective = check_choice(objective, "objective", OBJECTIVES)
+    params, static = _split(proposal, filter_spec)
+    solver = _check_solver(solver, params)
+
+    frozen = reuse or objective == "kl"
+
+    def draw_frozen(k, p):
+        prop = eqx.combine(jax.lax.stop_gradient(p), static)
+        x, log_q, w = _draw(prop, k, n)
+        logf = _log_abs(evaluate(f, x, batched))
+        return x, jax.lax.stop_gradient(logf), log_q, w
+
+    if frozen:
+
+        def loss(p, args):
+            x, logf, log_q, w = args
+            log_p = eqx.combine(p, static).log_pdf(x)
+            return _objective(objective, logf, log_p, w, log_q)
+
+        if resample:
+            make_args = lambda i, p: draw_frozen(jax.random.fold_in(key, i), p)
+        else:
+            args = draw_frozen(key, params)
+    else:
+        n_def = _defensive_count(defensive, n, objective)
+
+        def loss(p, k):
+            prop = eqx.combine(p, static)
+            if n_def == 0:
+                x, log_p, w = _draw(prop, k, n)
+                logf = _log_abs(evaluate(f, x, batched))
+                return _objective(objective, logf, log_p, w)
+            x, log_p, log_m, w = _defensive_draw(prop, k, n, n_def, defensive)
+            logf = _log_abs(evaluate(f, x, batched))
+            return _objective(objective, logf, log_p, w, log_m)
+
+        make_args = lambda i, p: jax.random.fold_in(key, i)
+        args = key
+
+    if resample:
+        params, losses = _run_steps(make_args, loss, solver, params, max_steps)
+        final = loss(params, make_args(max_steps - 1, params))
+        return FitResult(
+            proposal=eqx.combine(params, static),
+            loss=final,
+            steps=jnp.asarray(max_steps),
+            result=optx.RESULTS.successful,
+            losses=losses,
+        )
+    params, result, steps = _minimise(loss, solver, params, args, max_steps)
+    return FitResult(
+        proposal=eqx.combine(params, static),
+        loss=loss(params, args),
+        steps=steps,
+        result=result,
+    )
+
+
+def fit_on_samples(
+    proposal: Any,
+    x: jax.Array,
+    fx: jax.Array,
+    log_q: jax.Array,
+    *,
+    weights: jax.Array | None = None,
+    solver: optx.AbstractMinimiser | None = None,
+    objective: str = "variance",
+    max_steps: int = 256,
+    filter_spec: Any = None,
+) -> FitResult:
+    r"""Fit `proposal` on samples already drawn from a frozen density $q$.
+
+    Reuses one (expensive) batch for every step: the objective reweights the
+    samples, e.g. for the variance $\log \frac1n\sum_i f(x_i)^2/(p_\theta(x_i) q(x_i))$
+    (weights $f^2/(p\,q)$).
+
+    **Arguments:**
+
+    - `proposal`: the proposal to fit (its current parameters are the start).
+    - `x`: the samples, `(n, d)` (or `(n,)`).
+    - `fx`: `f(x)`, `(n, ...)`.
+    - `log_q`: $\log q(x)$ of the density the samples came from, `(n,)`.
+    - `weights`: per-sample weights summing to one (default $1/n$).
+    - `solver`, `objective`, `max_steps`, `filter_spec`: as for `fit`.
+
+    **Returns:** a `FitResult`.
+    """
+    proposal = _check_proposal(proposal)
+    objective = check_choice(objective, "objective", OBJECTIVES)
+    max_steps = check_count(max_steps, "max_steps")
+    x = jnp.asarray(x)
+    fx = jnp.asarray(fx)
+    log_q = jnp.asarray(log_q)
+    n = x.shape[0] if x.ndim else 0
+    if n < 1 or fx.shape[:1] != (n,) or log_q.shape != (n,):
+        raise ValueError(
+            f"`x`, `fx` and `log_q` must share a leading axis n >= 1 (log_q of shape (n,)), "
+            f"got {x.shape}, {fx.shape}, {log_q.shape}."
+        )
+    w = jnp.full((n,), 1.0 / n, log_q.dtype) if weights is None else jnp.asarray(weights)
+    if w.shape != (n,):
+        raise ValueError(f"`weights` must have shape ({n},), got {w.shape}.")
+    params, static = _split(proposal, filter_spec)
+    solver = _check_solver(solver, params)
+    args = (x, _log_abs(fx), log_q, w)
+
+    def loss(p, args):
+        xs, logf, lq, ws = args
+        return _objective(objective, logf, eqx.combine(p, static).log_pdf(xs), ws, lq)
+
+    params, result, steps = _minimise(loss, solver, params, args, max_steps)
+    return FitResult(eqx.combine(params, static), loss(params, args), steps, result)

@@ -1,0 +1,218 @@
+"""Fitted-proposal densities: normalisation, sampling law, gradients, refinement, errors."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from jaxmc.proposals import GaussianMixture, Grid, Mixture, Uniform
+
+
+LO2, HI2 = jnp.array([0.0, -1.0]), jnp.array([1.0, 2.0])
+
+# Jitted entry points: eager op-by-op dispatch of the samplers is what makes a test slow.
+sample = eqx.filter_jit(lambda q, key, n: q.sample(key, n))
+pdf = eqx.filter_jit(lambda q, x: q.pdf(x))
+
+
+def _quad_2d(pdf, lo, hi, m=400):
+    """Midpoint rule on an m x m grid (the Grid's edges need not align: error O(1/m))."""
+    t = (jnp.arange(m) + 0.5) / m
+    xs = lo[0] + (hi[0] - lo[0]) * t
+    ys = lo[1] + (hi[1] - lo[1]) * t
+    pts = jnp.stack(jnp.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    return jnp.sum(pdf(pts)) * jnp.prod(hi - lo) / m**2
+
+
+def _random_grid(key, lo, hi, bins):
+    g = Grid(lo, hi, bins)
+    return eqx.tree_at(lambda g: g.logits, g, 0.4 * jax.random.normal(key, g.logits.shape))
+
+
+def _proposals(key):
+    k1, k2, k3 = jax.random.split(key, 3)
+    gm = GaussianMixture(k1, LO2, HI2, components=3)
+    # Off-centre, narrow and wide components so truncation matters.
+    gm = eqx.tree_at(
+        lambda g: (g.means, g.log_scales, g.logits),
+        gm,
+        (
+            jnp.array([[0.9, 1.8], [0.1, -0.5], [2.0, 0.0]]),
+            jnp.log(jnp.array([[0.05, 0.3], [0.4, 1.0], [0.3, 0.2]])),
+            jnp.array([0.0, 1.0, -1.0]),
+        ),
+    )
+    grid = _random_grid(k2, LO2, HI2, 16)
+    mix = Mixture((gm, grid, Uniform(LO2, HI2)), (0.5, 0.3, 0.2))
+    return {"gm": gm, "grid": grid, "mix": mix}
+
+
+@pytest.mark.parametrize("name", ["gm", "grid", "mix"])
+def test_normalised_and_consistent(key, name):
+    prop = _proposals(key)[name]
+    total = _quad_2d(lambda x: pdf(prop, x), LO2, HI2, m=600)
+    assert abs(float(total) - 1.0) < 5e-3, total
+    x, p = sample(prop, jax.random.fold_in(key, 1), 4000)
+    assert x.shape == (4000, 2) and p.shape == (4000,)
+    assert bool(jnp.all((x >= LO2) & (x <= HI2)))
+    np.testing.assert_allclose(p, pdf(prop, x), rtol=1e-9)
+    np.testing.assert_allclose(jnp.exp(prop.log_pdf(x[0])), p[0], rtol=1e-9)
+    # Outside the box the density is zero.
+    assert float(prop.pdf(jnp.array([1.5, 0.0]))) == 0.0
+    # Unbiased: E_p[1/p] is the box volume (3).
+    est = jnp.mean(1.0 / p)
+    se = jnp.std(1.0 / p) / jnp.sqrt(4000.0)
+    assert abs(float(est) - 3.0) < 5 * float(se) + 1e-9
+
+
+@pytest.mark.parametrize("name", ["gm", "grid"])
+def test_sampling_law_1d(key, name):
+    """Binned chi-square of 1-D samples against the pdf integrated per bin."""
+    if name == "gm":
+        prop = GaussianMixture(key, -1.0, 2.0, components=2)
+        prop = eqx.tree_at(
+            lambda g: (g.means, g.log_scales),
+            prop,
+            (jnp.array([[1.8], [-3.0]]), jnp.log(jnp.array([[0.2], [1.5]]))),
+        )
+    else:
+        prop = _random_grid(key, -1.0, 2.0, 12)
+    n, bins = 40_000, 30
+    x, _ = sample(prop, jax.random.fold_in(key, 7), n)
+    assert x.shape == (n,)
+    edges = np.linspace(-1.0, 2.0, bins + 1)
+    fine = jnp.linspace(-1.0, 2.0, bins * 200 + 1)
+    mids = 0.5 * (fine[1:] + fine[:-1])
+    mass = np.asarray(pdf(prop, mids)).reshape(bins, 200).sum(axis=1) * (3.0 / (bins * 200))
+    counts, _ = np.histogram(np.asarray(x), edges)
+    expected = n * mass / mass.sum()
+    stat = np.sum((counts - expected) ** 2 / expected)
+    p_value = sps.chi2.sf(stat, bins - 1)
+    assert p_value > 1e-3, (counts, expected.round(1))
+
+
+def test_truncated_far_tail():
+    """A component 40 sigma outside the box samples its exponential-like tail correctly."""
+    g = GaussianMixture(jax.random.key(0), jnp.zeros(1), jnp.ones(1), 1)
+    g = eqx.tree_at(
+        lambda m: (m.means, m.log_scales), g, (jnp.array([[5.0]]), jnp.log(jnp.array([[0.1]])))
+    )
+    x, p = sample(g, jax.random.key(1), 20_000)
+    # Density ~ 400 exp(-400 (1 - x)) near x = 1: mean 1 - 1/400.
+    assert abs(float(jnp.mean(x)) - (1 - 1 / 400)) < 1e-4
+    assert bool(jnp.all(jnp.isfinite(p)))
+
+
+@pytest.mark.parametrize("name", ["gm", "grid", "mix"])
+def test_gradients_finite(key, name):
+    prop = _proposals(key)[name]
+    x, _ = sample(prop, key, 256)
+    grads = eqx.filter_jit(jax.grad(lambda q: jnp.sum(q.log_pdf(x))))(prop)
+    leaves = [g for g in jax.tree.leaves(grads) if g is not None]
+    assert leaves and all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
+
+    if name == "mix":
+        return  # its components are covered; the mixture's own sampler has no parameters
+
+    # Reparameterised gradient of an importance estimate (samples move with the parameters).
+    def est(q):
+        xs, ps = q.sample(jax.random.key(3), 256)
+        return jnp.mean(jnp.sum(xs**2, axis=-1) / ps)
+
+    g2 = eqx.filter_jit(jax.grad(est))(prop)
+    assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(g2))
+
+
+def test_gm_reparameterised_gradient_matches_finite_difference(key):
+    """d/dmu E[x] for one truncated normal, against float64 finite differences."""
+    g = GaussianMixture(key, 0.0, 1.0, 1)
+
+    @jax.jit
+    def mean_x(mu):
+        moved = eqx.tree_at(lambda m: m.means, g, jnp.reshape(mu, (1, 1)))
+        return jnp.mean(moved.sample(jax.random.key(5), 2000)[0])
+
+    mu = jnp.asarray(0.3)
+    grad = jax.grad(mean_x)(mu)
+    fd = (mean_x(mu + 1e-5) - mean_x(mu - 1e-5)) / 2e-5
+    np.testing.assert_allclose(grad, fd, rtol=1e-4)
+
+
+def test_jit_vmap(key):
+    prop = _proposals(key)["mix"]  # contains the other two
+    # jit gives the same points as the eager path (on the grid: eager dispatch is slow).
+    with jax.disable_jit():
+        x_eager, _ = prop.proposals[1].sample(key, 64)
+    np.testing.assert_allclose(sample(prop.proposals[1], key, 64)[0], x_eager, rtol=1e-12)
+    xs, ps = jax.jit(jax.vmap(lambda k: prop.sample(k, 16)))(jax.random.split(key, 3))
+    assert xs.shape == (3, 16, 2) and ps.shape == (3, 16)
+    assert pdf(prop, xs).shape == (3, 16)
+
+
+def test_grid_refine_vegas_rule(key):
+    g = Grid(0.0, 1.0, 8)
+    x, p = g.sample(key, 20_000)
+    w = (2 * x / p) ** 2
+    g2 = g.refine(x, w, alpha=1.0)
+    e = np.asarray(g2.edges[0])
+    assert e[0] == 0.0 and abs(e[-1] - 1.0) < 1e-12 and np.all(np.diff(e) > 0)
+    # f = 2x is larger on the right: the bins shrink there.
+    widths = np.diff(e)
+    assert widths[-1] < widths[0] / 2
+    # alpha = 0 flattens the weights: edges stay uniform.
+    np.testing.assert_allclose(g.refine(x, w, alpha=0.0).edges, g.edges, atol=1e-12)
+    # Repeated refinement converges towards the optimal density 2x (CDF x^2).
+    for i in range(10):
+        x, p = g2.sample(jax.random.fold_in(key, i), 20_000)
+        g2 = g2.refine(x, (2 * x / p) ** 2, alpha=0.5)
+    np.testing.assert_allclose(g2.edges[0], np.sqrt(np.linspace(0, 1, 9)), atol=0.03)
+
+
+def test_grid_edges_argument():
+    e = jnp.array([0.0, 0.1, 0.5, 1.0])
+    g = Grid(0.0, 1.0, 3, edges=e)
+    np.testing.assert_allclose(g.edges[0], e, atol=1e-12)
+    np.testing.assert_allclose(g.pdf(jnp.array([0.05, 0.3, 0.9])), [1 / 0.3, 1 / 1.2, 1 / 1.5])
+
+
+def test_mixture_weights_fixed_unless_trained(key):
+    props = _proposals(key)
+    mix = props["mix"]
+    g = jax.grad(lambda m: jnp.sum(m.log_pdf(jnp.array([[0.5, 0.5]]))))(mix)
+    assert float(jnp.max(jnp.abs(g.log_weights))) == 0.0
+    mix_t = Mixture(mix.proposals, (0.5, 0.3, 0.2), train_weights=True)
+    g = jax.grad(lambda m: jnp.sum(m.log_pdf(jnp.array([[0.5, 0.5]]))))(mix_t)
+    assert float(jnp.max(jnp.abs(g.log_weights))) > 0.0
+
+
+def test_bad_inputs(key):
+    with pytest.raises(ValueError, match="components"):
+        GaussianMixture(key, 0.0, 1.0, components=0)
+    with pytest.raises(ValueError, match="lo"):
+        GaussianMixture(key, 1.0, 0.0)
+    with pytest.raises(TypeError, match="key"):
+        GaussianMixture(0, 0.0, 1.0)
+    with pytest.raises(ValueError, match="bins"):
+        Grid(0.0, 1.0, bins=0)
+    with pytest.raises(TypeError, match="bins"):
+        Grid(0.0, 1.0, bins=2.5)
+    with pytest.raises(ValueError, match="edges"):
+        Grid(0.0, 1.0, 3, edges=jnp.array([0.0, 0.6, 0.5, 1.0]))
+    with pytest.raises(ValueError, match="weights"):
+        Mixture((Uniform(0.0, 1.0), Uniform(0.0, 1.0)), (1.0, -0.5))
+    with pytest.raises(ValueError, match="weights"):
+        Mixture((Uniform(0.0, 1.0),), (0.5, 0.5))
+    with pytest.raises(ValueError, match="shape"):
+        Mixture((Uniform(0.0, 1.0), Uniform(jnp.zeros(2), jnp.ones(2))))
+    with pytest.raises(TypeError, match="proposals"):
+        Mixture((Uniform(0.0, 1.0), "not a proposal"))
+    with pytest.raises(ValueError, match="x"):
+        Grid(jnp.zeros(2), jnp.ones(2)).pdf(jnp.zeros(3))
+    with pytest.raises(ValueError, match="n"):
+        Grid(0.0, 1.0).sample(key, 0)
+    with pytest.raises(ValueError, match="alpha"):
+        Grid(0.0, 1.0).refine(jnp.zeros(4), jnp.ones(4), alpha=-1.0)
+    with pytest.raises(ValueError, match="weights"):
+        Grid(0.0, 1.0).refine(jnp.zeros(4), jnp.ones(3))
