@@ -51,7 +51,7 @@ BLOCK = 1 << 14  # samples per block; power of two so Sobol' blocks are (t, m, s
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
 MAX_N = 1 << 30  # default budget when only a tolerance is given
 _LANE = 128  # inner width of the two-level reduction inside a block
-_QMC_MAX_DIM = 64  # beyond this auto picks plain MC
+_QMC_MAX_DIM = 12  # measured in benchmarks/convergence.py up to d = 8; beyond, plain MC
 
 
 def integrate(
@@ -92,7 +92,7 @@ def integrate(
       `"stratified"` (each block a jittered grid), `"adaptive"` (a VEGAS
       `Grid` trained by `jaxmc.fit.adapt` on about a fifth of the budget, then
       importance sampling from the frozen grid), or `"auto"`: scrambled Sobol'
-      for $d \le 64$, where randomised QMC converges faster on smooth integrands
+      for $d \le 12$, where randomised QMC converges faster on smooth integrands
       and is never worse than plain MC in expectation, else plain.
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
     - `chunk`: samples evaluated per loop step (default $2^{18}$); bounds the
