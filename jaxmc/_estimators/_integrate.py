@@ -93,7 +93,7 @@ def integrate(
       `Grid` trained by `jaxmc.fit.adapt` on about a fifth of the budget, then
       importance sampling from the frozen grid), or `"auto"`: scrambled Sobol'
       for $d \le 12$, where randomised QMC converges faster on smooth integrands
-      and is never worse than plain MC in expectation, else plain.
+      and whose variance is at most a small constant times plain MC's (Owen), else plain.
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
     - `chunk`: samples evaluated per loop step (default $2^{18}$); bounds the
       memory and, with several devices, is split among them. Results do not
