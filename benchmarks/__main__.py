@@ -1,7 +1,9 @@
 """`python -m benchmarks [--quick] [--only REGEX] [--out DIR]`: run jaxmc's benchmark suites.
 
-Writes `<suite>.json` per suite, `summary.md` with every suite's table, and the
-suites' PNG plots to `benchmarks/results/` (or `--out`).
+Writes `<suite>.json` and `<suite>.md` per suite, the suites' PNG plots, and
+`summary.md`: every suite's latest section found in the folder (so `--only`
+refreshes some suites without dropping the others'), to `benchmarks/results/`
+(or `--out`). Quick runs use the suffix `-quick`.
 """
 
 from __future__ import annotations
@@ -65,14 +67,20 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as error:  # one broken suite should not hide the others' results
             failures += 1
             print(f"[{name}] FAILED: {error!r}", file=sys.stderr, flush=True)
-            sections.append(f"## {title}\n\nFAILED: `{error!r}`\n")
+            section = args.out / f"{name}{suffix}.md"
+            section.write_text(f"## {title}\n\nFAILED: `{error!r}`\n")
             continue
         elapsed = time.perf_counter() - start
         print(f"[{name}] done in {elapsed:.1f} s", file=sys.stderr, flush=True)
         payload = {"suite": name, "environment": environment, "seconds": elapsed, **result.data}
         (args.out / f"{name}{suffix}.json").write_text(json.dumps(payload, indent=2, default=float))
         plots = "".join(f"\n![{p}]({p})\n" for p in result.plots)
-        sections.append(f"## {title}\n\n{result.markdown}\n{plots}\n_{elapsed:.1f} s_\n")
+        section = f"## {title}\n\n{result.markdown}\n{plots}\n_{elapsed:.1f} s_\n"
+        (args.out / f"{name}{suffix}.md").write_text(section)
+    for name in SUITES:
+        section = args.out / f"{name}{suffix}.md"
+        if section.exists():
+            sections.append(section.read_text())
     summary = args.out / f"summary{suffix}.md"
     summary.write_text("\n".join(sections))
     print(f"wrote {summary}", file=sys.stderr)

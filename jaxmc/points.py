@@ -485,11 +485,23 @@ def _halton_groups(bases: tuple[int, ...], count: int) -> list[tuple[int, int, i
 
 
 def _digit_step(q, b, inv_b, exact_float):
-    """`(q mod b, q // b)`; in float64 by a multiply (exact for q < 2^50), else integers."""
+    """`(q mod b, q // b)`, by a multiply where possible: CPUs have no vector integer division.
+
+    In float64 the rounded quotient is exact for q < 2^50. For int32 `q` below
+    2^24 (exact in float32; `inv_b` given) the float32 estimate is off by at most
+    one, and the integer remainder corrects it. Larger int32 `q`: integer division.
+    """
     if exact_float:
         quotient = jnp.floor((q + 0.5) * inv_b)
         return q - quotient * b, quotient
-    return q % b, q // b
+    if inv_b is None:
+        return q % b, q // b
+    quotient = jnp.floor(q.astype(jnp.float32) * inv_b).astype(jnp.int32)
+    remainder = q - quotient * b
+    low, high = remainder < 0, remainder >= b
+    quotient = quotient - low.astype(jnp.int32) + high.astype(jnp.int32)
+    remainder = remainder + jnp.where(low, b, 0) - jnp.where(high, b, 0)
+    return remainder, quotient
 
 
 def _halton_layout(bases, count, dtype):
@@ -566,11 +578,18 @@ def _halton(key, n, d, skip, dtype):
         b_np = np.asarray(bases[start:stop])
         offsets = np.asarray([layout[j][3] for j in range(start, stop)])
         b = jnp.asarray(b_np, dtype=work)[None, :]
-        inv_b = jnp.asarray(1.0 / b_np, dtype=work)[None, :] if exact_float else None
+        inv_b = jnp.asarray(1.0 / b_np, dtype=work if exact_float else jnp.float32)[None, :]
+        if not exact_float and skip + n > 2**24:
+            inv_b = None
         q = jnp.broadcast_to(index, (n, stop - start))
         x = jnp.broadcast_to(tail[start:stop][None, :], (n, stop - start))
         for t in range(k):
             digit, q = _digit_step(q, b, inv_b, exact_float)
+            if key is None and not exact_float:
+                # Unscrambled in single precision: a gather costs more than the product.
+                r_t = np.asarray([_digit_weights(int(bj), t + 1)[t] for bj in b_np])
+                x = x + digit.astype(acc) * jnp.asarray(r_t, acc)[None, :]
+                continue
             where = digit.astype(jnp.int32) + jnp.asarray(offsets + t * b_np, jnp.int32)[None, :]
             x = x + table[where]
         columns.append(x)

@@ -75,6 +75,24 @@ def test_sobol_max_dim_and_float32():
     np.testing.assert_array_equal(x32, np.floor(ref.random(256) * 2**24) / 2**24)
 
 
+@pytest.mark.parametrize("skip", [0, 2**24 - 300, 2**24 + 5])
+def test_halton_without_x64_matches_scipy(skip):
+    # Without x64, digits come from int32 indices: by a float32 multiply with an
+    # integer correction below 2^24, by integer division above. Sums are float32.
+    with jax.enable_x64(False):
+        plain = np.asarray(points.halton(600, 12, skip=skip))
+        permuted = np.asarray(points.halton(600, 12, skip=skip, key=jax.random.key(3)))
+    assert plain.dtype == np.float32
+    expected = _scipy_engine(qmc.Halton(12, scramble=False), skip).random(600)
+    np.testing.assert_allclose(plain, expected, rtol=0, atol=4e-7)
+    # Randomised, dimension 0 (base 2) keeps one point in each half per aligned pair.
+    start = skip % 2
+    halves = np.floor(permuted[start : start + 598, 0] * 2).reshape(-1, 2)
+    np.testing.assert_array_equal(halves.sum(axis=1), 1.0)
+    assert permuted.min() >= 0.0 and permuted.max() < 1.0
+    assert np.abs(permuted - plain).max() > 0.1
+
+
 @pytest.mark.parametrize("n, d, skip", [(1, 1, 0), (100, 5, 0), (1000, 10, 37), (500, 60, 11)])
 def test_halton_equals_scipy(n, d, skip):
     expected = _scipy_engine(qmc.Halton(d, scramble=False), skip).random(n)
