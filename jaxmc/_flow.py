@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _random
 from ._checks import check_bounds, check_count, check_key
 from .proposals import AbstractProposal
 
@@ -367,7 +368,7 @@ class Flow(AbstractProposal):
         # forward pass, so no exp/log round trip underflows where p is tiny.
         key = check_key(key)
         n = check_count(n)
-        u = jax.random.uniform(key, (n, self.dim), dtype=self.lo.dtype)
+        u = _random.uniform(key, (n, self.dim), self.lo.dtype)
         x, log_p = self.forward(u[:, 0] if self.event_ndim == 0 else u)
         return x, log_p, jnp.full((n,), 1.0 / n, log_p.dtype)
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import log_ndtr, ndtr, ndtri
 
+from . import _random
 from ._checks import check_bounds, check_count, check_key, is_concrete
 
 
@@ -90,7 +91,7 @@ class Uniform(AbstractProposal):
         key = check_key(key)
         n = check_count(n)
         shape = (n,) + jnp.shape(self.lo)
-        u = jax.random.uniform(key, shape, dtype=jnp.result_type(self.lo))
+        u = _random.uniform(key, shape, jnp.result_type(self.lo))
         x = self.lo + (self.hi - self.lo) * u
         pdf = jnp.broadcast_to(jnp.exp(-self._log_volume()), (n,))
         return x, pdf
@@ -267,7 +268,7 @@ class GaussianMixture(AbstractProposal):
         n = check_count(n)
         key_c, key_u = jax.random.split(key)
         k = jax.random.categorical(key_c, self.logits, shape=(n,))
-        u = jax.random.uniform(key_u, (n, self.dim), dtype=self.lo.dtype)
+        u = _random.uniform(key_u, (n, self.dim), self.lo.dtype)
         x = _from_matrix(self, self._sample_component(u, k))
         return x, self.pdf(x)
 
@@ -275,7 +276,7 @@ class GaussianMixture(AbstractProposal):
         """Stratified over components: `n_k` samples from component k, weight `pi_k / n_k`."""
         counts = _allocate(n, self.components)
         k = jnp.concatenate([jnp.full((c,), i, dtype=jnp.int32) for i, c in enumerate(counts)])
-        u = jax.random.uniform(key, (n, self.dim), dtype=self.lo.dtype)
+        u = _random.uniform(key, (n, self.dim), self.lo.dtype)
         x = _from_matrix(self, self._sample_component(u, k))
         pi = jax.nn.softmax(self.logits)
         w = pi[k] / jnp.asarray(counts, dtype=pi.dtype)[k]
@@ -400,12 +401,12 @@ class Grid(AbstractProposal):
     def sample(self, key, n):
         key = check_key(key)
         n = check_count(n)
-        u = jax.random.uniform(key, (n, self.dim), dtype=self.lo.dtype)
+        u = _random.uniform(key, (n, self.dim), self.lo.dtype)
         x, log_p = self.map(u)
         return _from_matrix(self, x), jnp.exp(log_p)
 
     def _draw(self, key, n):
-        u = jax.random.uniform(key, (n, self.dim), dtype=self.lo.dtype)
+        u = _random.uniform(key, (n, self.dim), self.lo.dtype)
         x, log_p = self.map(u)
         return _from_matrix(self, x), log_p, jnp.full((n,), 1.0 / n, log_p.dtype)
 

@@ -8,6 +8,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from .. import _random
 from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
 from ..stats import Estimate, estimate_iid
 
@@ -52,7 +53,7 @@ def uniform(
     f = check_callable(f)
     lo, hi = check_bounds(lo, hi)
     n = check_count(n)
-    u = jax.random.uniform(key, (n,) + lo.shape, dtype=lo.dtype)
+    u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
     x = lo + (hi - lo) * u
     fx = evaluate(f, x, batched)
     volume = jnp.prod(hi - lo)

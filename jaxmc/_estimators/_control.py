@@ -8,6 +8,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from .. import _random
 from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
 from ..stats import Estimate, estimate_iid, moments
 
@@ -73,7 +74,7 @@ def control_variate(
     g = check_callable(g, "g")
     lo, hi = check_bounds(lo, hi)
     n = check_count(n, minimum=4)
-    u = jax.random.uniform(key, (n,) + lo.shape, dtype=lo.dtype)
+    u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
     x = lo + (hi - lo) * u
     fx = evaluate(f, x, batched)
     gx = evaluate(g, x, batched, name="g")
@@ -152,7 +153,7 @@ def antithetic(
     if n % 2:
         raise ValueError(f"`n` must be even (n/2 antithetic pairs), got {n}.")
     pairs = n // 2
-    u = jax.random.uniform(key, (pairs,) + lo.shape, dtype=lo.dtype)
+    u = _random.uniform(key, (pairs,) + lo.shape, lo.dtype)
     x = lo + (hi - lo) * u
     x = jnp.concatenate([x, lo + hi - x])
     fx = evaluate(f, x, batched)

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from .. import _random
 from .._checks import (
     check_bounds,
     check_callable,
@@ -263,7 +264,7 @@ def _plan(method: str, budget: int, chunk: int, devices: int, d: int) -> _Plan:
 def _unit_points(method: str, plan: _Plan, key: jax.Array, d: int, dtype) -> jax.Array:
     """The block's points on the unit cube, shape `(block, d)`."""
     if method == "plain":
-        return jax.random.uniform(key, (plan.block, d), dtype=dtype)
+        return _random.uniform(key, (plan.block, d), dtype)
     from .. import points
 
     if method == "qmc":

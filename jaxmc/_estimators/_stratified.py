@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _random
 from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
 from ..stats import Estimate
 
@@ -143,7 +144,7 @@ def stratified(
     # Cell corners in C order, computed in the graph (no M x d constant baked in).
     corner = jnp.stack(jnp.unravel_index(jnp.arange(cells), counts), axis=-1).astype(lo.dtype)
     cell_size = 1.0 / jnp.asarray(counts, dtype=lo.dtype)
-    u = jax.random.uniform(key, (cells, m, d), dtype=lo.dtype)
+    u = _random.uniform(key, (cells, m, d), lo.dtype)
     unit = (corner[:, None, :] + u) * cell_size  # (M, m, d) in [0, 1)
     if lo.ndim == 0:
         unit = unit[..., 0]

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from .. import _random
 from .._checks import check_callable, check_choice, check_count, check_key, evaluate, ratio
 from ..proposals import Grid
 from ..stats import Combined, Estimate, combine, estimate_iid
@@ -57,7 +58,7 @@ def _stratified_step(grid: Grid, key, f, n: int, ns: int, sigma, beta, batched):
     ends = jnp.cumsum(counts)
     cube = jnp.searchsorted(ends, jnp.arange(n), side="right")
     corner = jnp.stack(jnp.unravel_index(cube, (ns,) * d), axis=-1).astype(grid.lo.dtype)
-    u = (corner + jax.random.uniform(key, (n, d), dtype=grid.lo.dtype)) / ns
+    u = (corner + _random.uniform(key, (n, d), grid.lo.dtype)) / ns
     x, log_p = grid.map(u)
     xs = x[:, 0] if grid.event_ndim == 0 else x
     fx = evaluate(f, xs, batched)

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from .. import _random
 from .._checks import check_callable, check_choice, check_count, check_key, evaluate
 
 
@@ -136,7 +137,7 @@ def _defensive_draw(prop, key, n: int, n_def: int, eps: float):
     key_p, key_u = jax.random.split(key)
     x_p, _, w_p = _draw(prop, key_p, n - n_def)
     lo, hi = jnp.asarray(prop.lo), jnp.asarray(prop.hi)
-    u = jax.random.uniform(key_u, (n_def,) + lo.shape, dtype=lo.dtype)
+    u = _random.uniform(key_u, (n_def,) + lo.shape, lo.dtype)
     x_u = lo + (hi - lo) * u
     x = jnp.concatenate([x_p, x_u], axis=0)
     log_p = prop.log_pdf(x)
