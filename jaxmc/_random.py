@@ -8,8 +8,8 @@ and just as well on accelerators. It is a pure function of a key and a counter,
 so results are bit-identical under `jit`, `vmap` and any chunking.
 
 A JAX key is first turned into a 64-bit Threefry key by one call to
-`jax.random.bits`, so every key implementation works and the streams here never
-coincide with `jax.random`'s own streams for the same key.
+`jax.random.bits`, so every key implementation works and the streams here are
+unrelated to the ones `jax.random` draws from the same key.
 """
 
 from __future__ import annotations
