@@ -218,65 +218,55 @@ def _run_vegas(vegas, case, iterations, n, repeats):
     )
 
 
-def _run_grid(case, iterations, n, repeats, bins=64):
+def _measured(est, variance, n_var, case, t, first, evals, q=float("nan")):
+    """The runners' common record: `variance` of the mean of `n_var` evaluations."""
+    exact = case["exact"]
+    return dict(
+        rel_sd=math.sqrt(variance * n_var) / exact,
+        t_adapt=t,
+        t_per_sample=t / evals,
+        compile=first - t,
+        z=float(abs(est.mean - exact) / est.stderr),
+        evals=evals,
+        q=q,
+    )
+
+
+def _run_adapt(case, iterations, n, repeats, make_proposal, **options):
+    """`adapt` from `make_proposal(key, lo, hi)`, first half of the iterations as warm-up."""
     from jaxmc.fit import adapt
-    from jaxmc.proposals import Grid
 
     lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
     warm = max(1, iterations // 2)
 
     @jax.jit
     def run(key):
+        proposal = make_proposal(jax.random.fold_in(key, 1), lo, hi)
         est, _ = adapt(
-            key,
-            case["f"],
-            Grid(lo, hi, bins),
-            iterations=iterations,
-            n_per_iteration=n,
-            warmup=warm,
-            stratify=True,
+            key, case["f"], proposal, iterations=iterations, n_per_iteration=n, warmup=warm,
+            **options,
         )
         return est
 
     est, first, t = _timed(lambda: run(jax.random.key(0)), repeats)
-    exact = case["exact"]
-    var_last = float(est.parts.variance[-1])
-    return dict(
-        rel_sd=math.sqrt(var_last * n) / exact,
-        t_adapt=t,
-        t_per_sample=t / (iterations * n),
-        compile=first - t,
-        z=float(abs(est.mean - exact) / est.stderr),
-        evals=iterations * n,
-        q=float(est.q),
-    )
+    variance = float(est.parts.variance[-1])
+    return _measured(est, variance, n, case, t, first, iterations * n, float(est.q))
+
+
+def _run_grid(case, iterations, n, repeats, bins=64):
+    """VEGAS+: a `Grid` with adaptive stratification."""
+    from jaxmc.proposals import Grid
+
+    make = lambda key, lo, hi: Grid(lo, hi, bins)
+    return _run_adapt(case, iterations, n, repeats, make, stratify=True)
 
 
 def _run_adapt_gm(case, iterations, n, repeats, components):
     """GaussianMixture refitted by a few BFGS steps per round on the round's samples."""
-    from jaxmc.fit import adapt
     from jaxmc.proposals import GaussianMixture
 
-    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
-    warm = max(1, iterations // 2)
-
-    @jax.jit
-    def run(key):
-        gm = GaussianMixture(jax.random.fold_in(key, 1), lo, hi, components)
-        est, _ = adapt(key, case["f"], gm, iterations=iterations, n_per_iteration=n, warmup=warm)
-        return est
-
-    est, first, t = _timed(lambda: run(jax.random.key(0)), repeats)
-    exact = case["exact"]
-    return dict(
-        rel_sd=math.sqrt(float(est.parts.variance[-1]) * n) / exact,
-        t_adapt=t,
-        t_per_sample=t / (iterations * n),
-        compile=first - t,
-        z=float(abs(est.mean - exact) / est.stderr),
-        evals=iterations * n,
-        q=float(est.q),
-    )
+    make = lambda key, lo, hi: GaussianMixture(key, lo, hi, components)
+    return _run_adapt(case, iterations, n, repeats, make)
 
 
 def _run_flow(case, iterations, n, repeats, replicas=8):
@@ -327,21 +317,12 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
         return qmc, iid
 
     (qmc, iid), first, t = _timed(lambda: run(jax.random.key(0)), repeats)
-    exact = case["exact"]
     n_final = m * replicas
     evals = steps * batch + n_final
-    results = {}
-    for label, est in (("jaxmc Flow+QMC", qmc), ("jaxmc Flow (iid)", iid)):
-        results[label] = dict(
-            rel_sd=math.sqrt(float(est.variance) * n_final) / exact,
-            t_adapt=t,
-            t_per_sample=t / evals,
-            compile=first - t,
-            z=float(abs(est.mean - exact) / est.stderr),
-            evals=evals,
-            q=float("nan"),
-        )
-    return results
+    return {
+        label: _measured(est, float(est.variance), n_final, case, t, first, evals)
+        for label, est in (("jaxmc Flow+QMC", qmc), ("jaxmc Flow (iid)", iid))
+    }
 
 
 def _time_to_tol(r):
@@ -390,14 +371,13 @@ def run(ctx: Context) -> Result:
             results["jaxmc GM"] = _run_adapt_gm(case, iterations, n, repeats, components)
             results.update(_run_flow(case, iterations, n, repeats))
         t_ref = _time_to_tol(results["vegas"]) if "vegas" in results else None
-        if "vegas" in results:
-            results["vegas"]["biased"] = not results["vegas"]["z"] <= MAX_Z
+        # A run whose estimate is off by > 5 stderr (e.g. a density locked onto one of
+        # two peaks) has a meaningless variance: no ratio, and it is flagged.
+        for r in results.values():
+            r["biased"] = not (r["rel_sd"] > 0 and r["z"] <= MAX_Z)
         for method, r in results.items():
             r["t_to_tol"] = _time_to_tol(r)
             r["err_at_T"] = _err_at(r, t_ref) if t_ref is not None else float("nan")
-            # A run whose estimate is off by > 5 stderr (e.g. a density locked onto one of
-            # two peaks) has a meaningless variance: no ratio, and it is flagged.
-            r["biased"] = not (r["rel_sd"] > 0 and r["z"] <= MAX_Z)
             ratio = (
                 (results["vegas"]["rel_sd"] / r["rel_sd"]) ** 2
                 if "vegas" in results and not r["biased"] and not results["vegas"]["biased"]

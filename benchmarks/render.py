@@ -91,7 +91,7 @@ def run(ctx: Context) -> Result:
     ids = np.asarray(object_ids(scene, width, height))
     plates = np.isin(ids, [scene.index(f"plate{i}") for i in range(1, 5)])
 
-    rows, data_rows, images = [], [], {}
+    data_rows, images = [], {}
     for strategy, points in combos:
         t = timings[strategy, points]["min_s"]
         renders = max(1, round(budget / t))
@@ -118,18 +118,6 @@ def run(ctx: Context) -> Result:
         images[strategy, points] = image
         mse_spp, mse_plates, mse_time, mse_time_plates = np.mean(errors, axis=0).tolist()
         save_png(ctx.out / f"render_{strategy}_{points}.png", image, exposure=EXPOSURE)
-        rows.append(
-            [
-                strategy,
-                points,
-                mse_spp,
-                mse_plates,
-                t * 1e3,
-                renders * spp,
-                mse_time,
-                mse_time_plates,
-            ]
-        )
         data_rows.append(
             dict(
                 strategy=strategy,
@@ -156,7 +144,19 @@ def run(ctx: Context) -> Result:
             "MSE @ equal time",
             "plates only",
         ],
-        rows,
+        [
+            [
+                r["strategy"],
+                r["points"],
+                r["mse_equal_spp"],
+                r["mse_plates_equal_spp"],
+                r["time_s"] * 1e3,
+                r["equal_time_spp"],
+                r["mse_equal_time"],
+                r["mse_plates_equal_time"],
+            ]
+            for r in data_rows
+        ],
     )
     markdown = (
         f"{width}×{height} pixels; equal spp = {spp} samples per pixel per technique; "

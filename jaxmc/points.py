@@ -530,14 +530,17 @@ def _digit_weights(b: int, k: int) -> np.ndarray:
 def _halton(key, n, d, skip, dtype):
     bases = _primes(d)
     layout, size = _halton_layout(bases, skip + n, dtype)
-    acc = jnp.float64 if _x64() else dtype
+    exact_float = _x64()
+    acc = jnp.float64 if exact_float else dtype
     local = np.concatenate([np.tile(np.arange(b), u) for b, u, _, _ in layout])
     weight = np.concatenate([np.repeat(_digit_weights(b, u), b) for b, u, _, _ in layout])
+    # Unscrambled in single precision, digit values are products: cheaper than a gather.
+    tabulated = key is not None or exact_float
     if key is None:
         # Digit values a * r_t tabulated in float64 by NumPy: a product computed in the
         # kernel could be fused into an FMA with the running sum, and differ from SciPy
         # in the last bit.
-        table = jnp.asarray(local * weight, acc)
+        table = jnp.asarray(local * weight, acc) if tabulated else None
         tail = jnp.zeros((d,), acc)
     else:
         width = max(1, max(total - u for _, u, total, _ in layout))
@@ -570,7 +573,6 @@ def _halton(key, n, d, skip, dtype):
         digits = jnp.minimum(jnp.floor(unit * base), base - 1)
         tail = jnp.sum(digits * jnp.asarray(weights, acc), axis=1)
 
-    exact_float = _x64()
     work = jnp.float64 if exact_float else jnp.int32
     index = jnp.arange(skip, skip + n, dtype=work)[:, None]
     columns = []
@@ -578,20 +580,20 @@ def _halton(key, n, d, skip, dtype):
         b_np = np.asarray(bases[start:stop])
         offsets = np.asarray([layout[j][3] for j in range(start, stop)])
         b = jnp.asarray(b_np, dtype=work)[None, :]
-        inv_b = jnp.asarray(1.0 / b_np, dtype=work if exact_float else jnp.float32)[None, :]
-        if not exact_float and skip + n > 2**24:
-            inv_b = None
+        # Without x64, indices at or above 2^24 are not exact in float32: integer division.
+        multiply = exact_float or skip + n <= 2**24
+        inv_b = jnp.asarray(1.0 / b_np, work if exact_float else jnp.float32)[None, :]
+        inv_b = inv_b if multiply else None
         q = jnp.broadcast_to(index, (n, stop - start))
         x = jnp.broadcast_to(tail[start:stop][None, :], (n, stop - start))
         for t in range(k):
             digit, q = _digit_step(q, b, inv_b, exact_float)
-            if key is None and not exact_float:
-                # Unscrambled in single precision: a gather costs more than the product.
+            if tabulated:
+                where = digit.astype(jnp.int32) + jnp.asarray(offsets + t * b_np, jnp.int32)
+                x = x + table[where]
+            else:
                 r_t = np.asarray([_digit_weights(int(bj), t + 1)[t] for bj in b_np])
                 x = x + digit.astype(acc) * jnp.asarray(r_t, acc)[None, :]
-                continue
-            where = digit.astype(jnp.int32) + jnp.asarray(offsets + t * b_np, jnp.int32)[None, :]
-            x = x + table[where]
         columns.append(x)
     x = jnp.concatenate(columns, axis=1) if len(columns) > 1 else columns[0]
     return jnp.minimum(x.astype(dtype), _below_one(dtype))
