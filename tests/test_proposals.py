@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from jaxmc.proposals import GaussianMixture, Grid, Mixture, Uniform
+from jaxmc.proposals import GaussianMixture, Grid, Mixture, PiecewiseLinear, Uniform
 
 
 LO2, HI2 = jnp.array([0.0, -1.0]), jnp.array([1.0, 2.0])
@@ -31,6 +31,11 @@ def _random_grid(key, lo, hi, bins):
     return eqx.tree_at(lambda g: g.logits, g, 0.4 * jax.random.normal(key, g.logits.shape))
 
 
+def _random_linear(key, lo, hi, bins):
+    p = PiecewiseLinear(lo, hi, bins)
+    return eqx.tree_at(lambda q: q.log_heights, p, jax.random.normal(key, p.log_heights.shape))
+
+
 def _proposals(key):
     k1, k2, k3 = jax.random.split(key, 3)
     gm = GaussianMixture(k1, LO2, HI2, components=3)
@@ -46,10 +51,11 @@ def _proposals(key):
     )
     grid = _random_grid(k2, LO2, HI2, 16)
     mix = Mixture((gm, grid, Uniform(LO2, HI2)), (0.5, 0.3, 0.2))
-    return {"gm": gm, "grid": grid, "mix": mix}
+    linear = _random_linear(k3, LO2, HI2, 5)
+    return {"gm": gm, "grid": grid, "mix": mix, "linear": linear}
 
 
-@pytest.mark.parametrize("name", ["gm", "grid", "mix"])
+@pytest.mark.parametrize("name", ["gm", "grid", "mix", "linear"])
 def test_normalised_and_consistent(key, name):
     prop = _proposals(key)[name]
     total = _quad_2d(lambda x: pdf(prop, x), LO2, HI2, m=600)
@@ -67,7 +73,7 @@ def test_normalised_and_consistent(key, name):
     assert abs(float(est) - 3.0) < 5 * float(se) + 1e-9
 
 
-@pytest.mark.parametrize("name", ["gm", "grid"])
+@pytest.mark.parametrize("name", ["gm", "grid", "linear"])
 def test_sampling_law_1d(key, name):
     """Binned chi-square of 1-D samples against the pdf integrated per bin."""
     if name == "gm":
@@ -77,8 +83,10 @@ def test_sampling_law_1d(key, name):
             prop,
             (jnp.array([[1.8], [-3.0]]), jnp.log(jnp.array([[0.2], [1.5]]))),
         )
-    else:
+    elif name == "grid":
         prop = _random_grid(key, -1.0, 2.0, 12)
+    else:
+        prop = _random_linear(key, -1.0, 2.0, 7)
     n, bins = 40_000, 30
     x, _ = sample(prop, jax.random.fold_in(key, 7), n)
     assert x.shape == (n,)
@@ -105,7 +113,7 @@ def test_truncated_far_tail():
     assert bool(jnp.all(jnp.isfinite(p)))
 
 
-@pytest.mark.parametrize("name", ["gm", "grid", "mix"])
+@pytest.mark.parametrize("name", ["gm", "grid", "mix", "linear"])
 def test_gradients_finite(key, name):
     prop = _proposals(key)[name]
     x, _ = sample(prop, key, 256)
@@ -200,6 +208,12 @@ def test_bad_inputs(key):
         Grid(0.0, 1.0, bins=2.5)
     with pytest.raises(ValueError, match="edges"):
         Grid(0.0, 1.0, 3, edges=jnp.array([0.0, 0.6, 0.5, 1.0]))
+    with pytest.raises(ValueError, match="bins"):
+        PiecewiseLinear(0.0, 1.0, bins=0)
+    with pytest.raises(ValueError, match="lo"):
+        PiecewiseLinear(jnp.ones(2), jnp.zeros(2))
+    with pytest.raises(ValueError, match="x"):
+        PiecewiseLinear(jnp.zeros(2), jnp.ones(2)).pdf(jnp.zeros(3))
     with pytest.raises(ValueError, match="weights"):
         Mixture((Uniform(0.0, 1.0), Uniform(0.0, 1.0)), (1.0, -0.5))
     with pytest.raises(ValueError, match="weights"):

@@ -9,6 +9,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
 from .. import _random
@@ -28,46 +29,111 @@ def _sq_norm(y: jax.Array) -> jax.Array:
     return jnp.sum(jnp.reshape(y, (y.shape[0], -1)) ** 2, axis=-1)
 
 
-def _strata(d: int, n: int, max_strata: int) -> int:
-    """Strata per axis for VEGAS+: about four samples per hypercube at most."""
-    ns = max(1, int((n / 4) ** (1.0 / d) + 1e-9))
+# Share of each round's samples spread evenly over the hypercubes (at least two per
+# cube); the rest go where sigma_h is large. vegas's default `neval_frac` is the
+# adaptive share, 0.75.
+_UNIFORM_SHARE = 0.25
+
+
+def _strata(d: int, n: int, max_strata: int) -> tuple[int, ...]:
+    r"""Strata per axis for VEGAS+, as vegas chooses them.
+
+    $n_s = \lfloor (n_0/2)^{1/d} \rfloor$ with $n_0$ the evenly spread share of
+    the `n` samples, so each hypercube gets about two of those; then as many axes
+    as still fit get $n_s + 1$ strata. At most `max_strata` hypercubes.
+    """
+    n0 = _UNIFORM_SHARE * n
+    ns = max(1, int((n0 / 2) ** (1.0 / d) + 1e-9))
     while ns > 1 and ns**d > max_strata:
         ns -= 1
-    return ns
+    strata = [ns] * d
+    for j in range(d):
+        bigger = strata.copy()
+        bigger[j] += 1
+        if 2 * math.prod(bigger) > n0 or math.prod(bigger) > max_strata:
+            break
+        strata = bigger
+    return tuple(strata)
 
 
-def _allocate(sigma: jax.Array, n: int, beta: float) -> jax.Array:
-    r"""Samples per hypercube $n_h \propto \sigma_h^\beta$, at least 2 each, summing to `n`."""
+def _allocate(sigma: jax.Array, n: int, beta) -> jax.Array:
+    r"""Samples per hypercube: an even floor $m_0 \ge 2$ each plus the rest $\propto \sigma_h^\beta$.
+
+    The proportional shares are rounded systematically (the rounded cumulative
+    sum is differenced), so the counts sum to `n` exactly and each is within one
+    of its share: no sort, which matters at thousands of hypercubes.
+    """
     h = sigma.shape[0]
+    m0 = max(2, int(_UNIFORM_SHARE * n / h))
+    spare = n - m0 * h
     s = jnp.where(jnp.isfinite(sigma) & (sigma > 0), sigma, 0.0) ** beta
     total = jnp.sum(s)
     share = jnp.where(total > 0, s / jnp.where(total > 0, total, 1.0), 1.0 / h)
-    spare = n - 2 * h
-    want = share * spare
-    base = jnp.floor(want).astype(jnp.int32)
-    rest = spare - jnp.sum(base)
-    rank = jnp.argsort(jnp.argsort(-(want - base)))
-    return 2 + base + (rank < rest).astype(jnp.int32)
+    # Cumulative sums of non-negative terms never decrease, so neither do the rounded ones.
+    cum = jnp.minimum(jnp.floor(jnp.cumsum(share) * spare + 0.5), spare).astype(jnp.int32)
+    cum = cum.at[-1].set(spare)
+    return m0 + jnp.diff(cum, prepend=0)
 
 
-def _stratified_step(grid: Grid, key, f, n: int, ns: int, sigma, beta, batched):
-    """One VEGAS+ iteration on `grid`: returns (Estimate, x, per-sample refine weights, sigma)."""
-    d = grid.dim
-    h = ns**d
+def _hypercube_of_sample(counts: jax.Array, n: int) -> jax.Array:
+    """Hypercube index of each of the `n` samples, laid out cube by cube (`counts` per cube)."""
+    starts = jnp.cumsum(counts)[:-1]
+    return jnp.cumsum(jnp.zeros((n,), jnp.int32).at[starts].add(1))
+
+
+def _corners(cube: jax.Array, strata: tuple[int, ...], dtype) -> jax.Array:
+    """Lower corner (in strata units) of each hypercube, `(n,) -> (n, d)`, row-major order.
+
+    Float arithmetic, exact for fewer than 2^22 hypercubes: `jnp.unravel_index`'s
+    integer divisions run as a scalar loop on the CPU.
+    """
+    dtype = jnp.promote_types(dtype, jnp.float32)
+    strides = np.array([math.prod(strata[j + 1 :]) for j in range(len(strata))], dtype)
+    c = cube.astype(dtype)[:, None] + 0.5
+    q = jnp.floor(c / strides)  # cube // stride, per axis
+    sizes = np.asarray(strata, dtype)
+    return q - sizes * jnp.floor((q + 0.5) / sizes)  # ... % strata
+
+
+class _Draw(eqx.Module):
+    """One VEGAS+ round's points on the unit cube, laid out hypercube by hypercube."""
+
+    u: jax.Array  # (n, d) points
+    cube: jax.Array  # (n,) hypercube of each point, non-decreasing
+    counts: jax.Array  # (H,) points per hypercube
+
+
+def _stratified_draw(raw, sigma, n: int, strata, beta) -> _Draw:
+    """Spread `n` points over the hypercubes by `_allocate` and jitter them with `raw` uniforms."""
     counts = _allocate(sigma, n, beta)
-    ends = jnp.cumsum(counts)
-    cube = jnp.searchsorted(ends, jnp.arange(n), side="right")
-    corner = jnp.stack(jnp.unravel_index(cube, (ns,) * d), axis=-1).astype(grid.lo.dtype)
-    u = (corner + _random.uniform(key, (n, d), grid.lo.dtype)) / ns
-    x, log_p = grid.map(u)
+    cube = _hypercube_of_sample(counts, n)
+    corner = _corners(cube, strata, raw.dtype)
+    u = ((corner + raw) / np.asarray(strata, corner.dtype)).astype(raw.dtype)
+    return _Draw(u, cube, counts)
+
+
+def _stratified_step(grid: Grid, table, draw: _Draw, f, n: int, strata, alpha, batched):
+    r"""One VEGAS+ round on `grid`: the estimate, the refined grid and the new $\sigma_h$.
+
+    The unit cube of the grid's map is cut into `prod(strata)` hypercubes $h$
+    of volume $v = 1/H$; cube $h$ gets $n_h$ samples (`_allocate`), and
+    $\hat I = v \sum_h \bar y_h$, $\hat V = v^2 \sum_h s_h^2 / n_h$ with
+    $y = f/p$ and $\bar y_h$, $s_h^2$ the cube's sample mean and variance
+    (stratified sampling, §4.2).
+    """
+    h = math.prod(strata)
+    u, cube, counts = draw.u, draw.cube, draw.counts
+    x, log_p, bins = grid._map(u, table)
     xs = x[:, 0] if grid.event_ndim == 0 else x
     fx = evaluate(f, xs, batched)
     y, bad = ratio(fx, jnp.exp(log_p))
     cnt = counts.astype(y.dtype)
     shape = (h,) + (1,) * (y.ndim - 1)
-    mean_h = jax.ops.segment_sum(y, cube, h) / jnp.reshape(cnt, shape)
+    mean_h = jax.ops.segment_sum(y, cube, h, indices_are_sorted=True) / jnp.reshape(cnt, shape)
     dev2 = (y - mean_h[cube]) ** 2
-    var_h = jax.ops.segment_sum(dev2, cube, h) / jnp.reshape(cnt - 1, shape)
+    var_h = jax.ops.segment_sum(dev2, cube, h, indices_are_sorted=True) / jnp.reshape(
+        cnt - 1, shape
+    )
     vol = 1.0 / h
     mean = vol * jnp.sum(mean_h, axis=0)
     variance = vol**2 * jnp.sum(var_h / jnp.reshape(cnt, shape), axis=0)
@@ -78,8 +144,10 @@ def _stratified_step(grid: Grid, key, f, n: int, ns: int, sigma, beta, batched):
         n_nonfinite=jnp.sum(bad, dtype=jnp.int32),
     )
     new_sigma = jnp.sqrt(jnp.sum(jnp.reshape(var_h, (h, -1)), axis=-1))
+    # Each sample stands for volume v / n_h of the unit cube: the per-bin sums
+    # estimate the integral of (f/p)^2 over each bin, whatever the allocation.
     refine_w = (vol / cnt[cube]) * _sq_norm(y)
-    return est, xs, refine_w, new_sigma
+    return est, grid._refine_bins(bins, refine_w, alpha=alpha), new_sigma
 
 
 def adapt(
@@ -93,7 +161,7 @@ def adapt(
     alpha: float = 0.5,
     stratify: bool = False,
     beta: float = 0.75,
-    max_strata: int = 4096,
+    max_strata: int = 2**16,
     solver: optx.AbstractMinimiser | None = None,
     fit_steps: int = 32,
     objective: str = "variance",
@@ -107,10 +175,11 @@ def adapt(
 
     - a `Grid` by the VEGAS rule (`Grid.refine` with damping `alpha`, on the
       weights $(f/p)^2$); with `stratify=True` the unit cube of the grid's map is
-      also cut into `ns**d` hypercubes and the samples are spread over them
-      $\propto \sigma_h^\beta$ (adaptive stratified sampling of VEGAS+, Lepage
-      2021), $\sigma_h$ the previous round's standard deviation of $f/p$ in
-      hypercube $h$, at least two each;
+      also cut into hypercubes (about $n/8$ of them, as vegas does) and the
+      samples are spread over them: a quarter evenly (at least two per cube),
+      the rest $\propto \sigma_h^\beta$ (adaptive stratified sampling of VEGAS+,
+      Lepage 2021), $\sigma_h$ the previous round's standard deviation of $f/p$
+      in hypercube $h$;
     - any other proposal by `fit_steps` steps of `solver` (default BFGS) on the
       round's samples, reweighted from the frozen density they came from
       (`fit_on_samples`): no extra integrand evaluations.
@@ -178,12 +247,12 @@ def adapt(
         solver = _check_solver(solver, params)
 
     if stratify:
-        ns = _strata(proposal.dim, n, max_strata)
-        if 2 * ns**proposal.dim > n:
+        strata = _strata(proposal.dim, n, max_strata)
+        if 2 * math.prod(strata) > n:
             raise ValueError(
                 f"`n_per_iteration` = {n} is too small to stratify in {proposal.dim} dimensions."
             )
-        sigma0 = jnp.ones((ns**proposal.dim,), proposal.lo.dtype)
+        sigma0 = jnp.ones((math.prod(strata),), proposal.lo.dtype)
     else:
         sigma0 = jnp.zeros((1,), jnp.result_type(float))
 
@@ -202,25 +271,48 @@ def adapt(
         p1 = jax.tree.map(lambda a, b: jnp.where(ok, a, b), sol.value, p0)
         return eqx.combine(p1, static)
 
+    def uniforms(i):
+        return _random.uniform(jax.random.fold_in(key, i), (n, proposal.dim), proposal.lo.dtype)
+
+    def next_draw(i, sigma):
+        raw = uniforms(i)
+        return _stratified_draw(raw, sigma, n, strata, beta) if stratify else raw
+
     def body(carry, i):
-        p, sigma = carry
+        p, draw, table = carry
         prop = eqx.combine(p, static)
-        k = jax.random.fold_in(key, i)
-        if stratify:
-            est, x, w, sigma = _stratified_step(prop, k, f, n, ns, sigma, beta, batched)
-            prop = prop.refine(x, w, alpha=alpha)
+        if is_grid:
+            if stratify:
+                est, prop, sigma = _stratified_step(
+                    prop, table, draw, f, n, strata, alpha, batched
+                )
+            else:
+                x, log_p, bins = prop._map(draw, table)
+                x = x[:, 0] if prop.event_ndim == 0 else x
+                y, bad = ratio(evaluate(f, x, batched), jnp.exp(log_p))
+                est = estimate_iid(y, bad)
+                prop = prop._refine_bins(bins, _sq_norm(y) / n, alpha=alpha)
+                sigma = None
+            # Round i + 1's points (its allocation needs only this round's sigma) and
+            # the refined grid's table are made now and carried. Loop-carried arrays
+            # are stored, so neither the random generator, the allocation nor the
+            # table's softmax is re-run inside the map's gathers, which XLA on the CPU
+            # would otherwise fuse them into (a scalar loop).
+            draw = next_draw(i + 1, sigma)
+            table = prop._table()
+            p, _ = eqx.partition(prop, eqx.is_array)
         else:
-            x, px = prop.sample(k, n)
+            x, px = prop.sample(jax.random.fold_in(key, i), n)
             fx = evaluate(f, x, batched)
             y, bad = ratio(fx, px)
             est = estimate_iid(y, bad)
-            if is_grid:
-                prop = prop.refine(x, _sq_norm(y) / n, alpha=alpha)
-            else:
-                prop = refit(prop, x, fx, jnp.log(px))
-        p, _ = eqx.partition(prop, eqx.is_array) if is_grid else _split(prop, None)
-        return (p, sigma), est
+            p, _ = _split(refit(prop, x, fx, jnp.log(px)), None)
+        return (p, draw, table), est
 
-    (params, _), parts = jax.lax.scan(body, (params, sigma0), jnp.arange(iterations))
+    if is_grid:
+        init = (params, next_draw(0, sigma0), proposal._table())
+    else:
+        init = (params, jnp.zeros((), proposal.lo.dtype), None)
+    (params, _, _), parts = jax.lax.scan(body, init, jnp.arange(iterations))
     parts = jax.tree.map(lambda a: a[warmup:], parts)
     return combine(parts), eqx.combine(params, static)
