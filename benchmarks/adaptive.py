@@ -33,6 +33,9 @@ from ._harness import Context, Result, block, markdown_table, optional_import
 TITLE = "Adaptive integration against vegas"
 
 TOL = 1e-3
+GRID_BINS = 256  # per axis (vegas: up to 1000; 256 measured best for jaxmc's rule here)
+GM_COMPONENTS = 8  # for every case: no knowledge of the number of modes
+FLOW_STEPS_PER_BATCH = 8  # Adam steps on each evaluated batch (reweighted, forward KL)
 # |estimate - I| / stderr above which a run counts as biased (its variance is not trusted).
 MAX_Z = 5.0
 
@@ -232,48 +235,75 @@ def _measured(est, variance, n_var, case, t, first, evals, q=float("nan")):
     )
 
 
-def _run_adapt(case, iterations, n, repeats, make_proposal, **options):
-    """`adapt` from `make_proposal(key, lo, hi)`, first half of the iterations as warm-up."""
+def _run_timed(case, run, n, repeats, evals):
+    """Time the jitted `run(key) -> Combined`; `rel_sd` from its last round of `n` evaluations."""
+    est, first, t = _timed(lambda: run(jax.random.key(0)), repeats)
+    variance = float(est.parts.variance[-1])
+    return _measured(est, variance, n, case, t, first, evals, float(est.q))
+
+
+def _run_grid(case, iterations, n, repeats, bins=GRID_BINS):
+    """VEGAS+: a `Grid` with adaptive stratification, first half of the iterations as warm-up."""
     from jaxmc.fit import adapt
+    from jaxmc.proposals import Grid
 
     lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
-    warm = max(1, iterations // 2)
 
     @jax.jit
     def run(key):
-        proposal = make_proposal(jax.random.fold_in(key, 1), lo, hi)
+        grid = Grid(lo, hi, bins)
+        warm = max(1, iterations // 2)
         est, _ = adapt(
-            key, case["f"], proposal, iterations=iterations, n_per_iteration=n, warmup=warm,
-            **options,
+            key, case["f"], grid, iterations=iterations, n_per_iteration=n, warmup=warm,
+            stratify=True,
         )
         return est
 
-    est, first, t = _timed(lambda: run(jax.random.key(0)), repeats)
-    variance = float(est.parts.variance[-1])
-    return _measured(est, variance, n, case, t, first, iterations * n, float(est.q))
+    return _run_timed(case, run, n, repeats, iterations * n)
 
 
-def _run_grid(case, iterations, n, repeats, bins=64):
-    """VEGAS+: a `Grid` with adaptive stratification."""
-    from jaxmc.proposals import Grid
+def _run_gm(case, iterations, n, repeats, components=GM_COMPONENTS):
+    """A GaussianMixture started from a VEGAS+ grid's importance-weighted samples.
 
-    make = lambda key, lo, hi: Grid(lo, hi, bins)
-    return _run_adapt(case, iterations, n, repeats, make, stratify=True)
+    Budget split (10 iterations): 4 rounds of VEGAS+ on a `Grid`, one batch of
+    `n` samples from it whose weights |f|/p seed the mixture by weighted EM
+    (`GaussianMixture.from_samples`: separated modes each get a component),
+    then 5 rounds of `adapt` (32 BFGS steps per round on the round's samples),
+    the first 2 as warm-up.
+    """
+    from jaxmc.fit import adapt
+    from jaxmc.proposals import GaussianMixture, Grid
 
+    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
+    grid_rounds = max(1, 2 * iterations // 5)
+    gm_rounds = iterations - grid_rounds - 1
+    if gm_rounds < 2:
+        raise ValueError(f"the GM runner needs at least 5 iterations, got {iterations}.")
 
-def _run_adapt_gm(case, iterations, n, repeats, components):
-    """GaussianMixture refitted by a few BFGS steps per round on the round's samples."""
-    from jaxmc.proposals import GaussianMixture
+    @jax.jit
+    def run(key):
+        k_grid, k_seed, k_gm = jax.random.split(key, 3)
+        _, grid = adapt(
+            k_grid, case["f"], Grid(lo, hi, GRID_BINS), iterations=grid_rounds,
+            n_per_iteration=n, stratify=True,
+        )
+        x, p = grid.sample(k_seed, n)
+        gm = GaussianMixture.from_samples(x, jnp.abs(jax.vmap(case["f"])(x)) / p, lo, hi, components)
+        est, _ = adapt(
+            k_gm, case["f"], gm, iterations=gm_rounds, n_per_iteration=n, warmup=gm_rounds // 2
+        )
+        return est
 
-    make = lambda key, lo, hi: GaussianMixture(key, lo, hi, components)
-    return _run_adapt(case, iterations, n, repeats, make)
+    return _run_timed(case, run, n, repeats, iterations * n)
 
 
 def _run_flow(case, iterations, n, repeats, replicas=8):
     """A `Flow` trained by Adam on the forward KL, then integrated by scrambled Sobol' in its latent space.
 
-    Budget: `(iterations - 1) * n` evaluations for training (fresh samples each
-    step) and at most `n` for the final estimate, as vegas's iterations. The
+    Budget: `(iterations - 1) * n` evaluations for training, in batches of
+    `n / 10` each reused (reweighted) for `FLOW_STEPS_PER_BATCH` Adam steps, a
+    tenth of each batch drawn uniformly (`defensive`), and at most `n` for the
+    final estimate, as vegas's iterations. The
     final estimate is $\int_{[0,1]^d} f(T(u)) / p(T(u))\, du$ by `randomized_qmc`
     (`replicas` scrambles of $2^m \le n/\text{replicas}$ points), the flow's
     analogue of vegas's stratification; `iid` is the same flow sampled i.i.d.
@@ -286,8 +316,8 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
 
     lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
     d = case["d"]
-    batch = max(256, n // 20)
-    steps = (iterations - 1) * n // batch
+    batch = max(256, n // 10)
+    steps = (iterations - 1) * n // batch * FLOW_STEPS_PER_BATCH
     m = 2 ** int(math.log2(n // replicas))
     solver = optx.OptaxMinimiser(
         optax.adam(optax.cosine_decay_schedule(1e-2, steps)), rtol=0.0, atol=0.0
@@ -304,6 +334,7 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
             solver=solver,
             max_steps=steps,
             resample=True,
+            steps_per_batch=FLOW_STEPS_PER_BATCH,
             objective="kl",
         ).proposal
 
@@ -318,7 +349,7 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
 
     (qmc, iid), first, t = _timed(lambda: run(jax.random.key(0)), repeats)
     n_final = m * replicas
-    evals = steps * batch + n_final
+    evals = steps // FLOW_STEPS_PER_BATCH * batch + n_final
     return {
         label: _measured(est, float(est.variance), n_final, case, t, first, evals)
         for label, est in (("jaxmc Flow+QMC", qmc), ("jaxmc Flow (iid)", iid))
@@ -367,8 +398,7 @@ def run(ctx: Context) -> Result:
             results["vegas"] = _run_vegas(vegas, case, iterations, n, repeats)
         results["jaxmc Grid+"] = _run_grid(case, iterations, n, repeats)
         if not case["separable"] or case["d"] >= 8:
-            components = 2 if "camel" in case["name"] else 8
-            results["jaxmc GM"] = _run_adapt_gm(case, iterations, n, repeats, components)
+            results["jaxmc GM"] = _run_gm(case, iterations, n, repeats)
             results.update(_run_flow(case, iterations, n, repeats))
         t_ref = _time_to_tol(results["vegas"]) if "vegas" in results else None
         # A run whose estimate is off by > 5 stderr (e.g. a density locked onto one of
@@ -403,15 +433,19 @@ def run(ctx: Context) -> Result:
         data["cases"][case["name"]] = results
     notes = (
         f"\n\n{iterations} iterations of up to {n} evaluations each (vegas: `neval={n}`; jaxmc "
-        "`Grid+`: `adapt(..., stratify=True)`, 64 bins, first half of the iterations as warm-up; "
-        "jaxmc `GM`: `adapt` with a GaussianMixture, 32 BFGS steps per round on the round's "
-        "own samples, no extra evaluations). `rel_sd` is per sample; `t_1e-3` and `err@T` "
+        f"`Grid+`: `adapt(..., stratify=True)`, {GRID_BINS} bins per axis, first half of the "
+        "iterations as warm-up; jaxmc `GM`: a GaussianMixture of "
+        f"{GM_COMPONENTS} components seeded by weighted EM on importance-weighted samples of a "
+        "VEGAS+ grid (4 rounds of the grid, 1 batch to seed, 5 rounds of `adapt` with 32 BFGS "
+        "steps per round on the round's own samples). `rel_sd` is per sample, from the last "
+        "round; `t_1e-3` and `err@T` "
         "are projections from the measured steady-state times (T = vegas's `t_1e-3`); "
         "`var ratio` = (vegas rel_sd / method rel_sd)^2, i.e. variance per evaluation relative "
         "to vegas (> 1 is better than vegas). Wall-clock times on a shared 2-core machine are "
         "noisy. `biased`: |z| > 5 (or a zero variance), so the run's variance means nothing: "
         "the density missed part of the integrand. `Flow+QMC`: a `Flow` trained by Adam on the "
-        "forward KL with 90% of the budget, then integrated by 8 scrambled Sobol' replicas in its "
+        f"forward KL with 90% of the budget ({FLOW_STEPS_PER_BATCH} steps per evaluated batch), "
+        "then integrated by 8 scrambled Sobol' replicas in its "
         "latent space (the flow's analogue of vegas's stratification); `Flow (iid)`: the same "
         "flow sampled i.i.d.; their `t_1e-3` uses the run's time per evaluation, training "
         "included."

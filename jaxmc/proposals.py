@@ -121,6 +121,17 @@ def _from_matrix(proposal: AbstractProposal, x: jax.Array) -> jax.Array:
     return x[:, 0] if proposal.event_ndim == 0 else x
 
 
+def _sum_last(a: jax.Array) -> jax.Array:
+    """Sum over a short last axis as explicit adds (XLA on the CPU reduces a trailing
+    axis of a few elements several times slower than it adds columns)."""
+    if a.shape[-1] > 16:
+        return jnp.sum(a, axis=-1)
+    total = a[..., 0]
+    for j in range(1, a.shape[-1]):
+        total = total + a[..., j]
+    return total
+
+
 def _allocate(n: int, k: int) -> tuple[int, ...]:
     """Split `n` samples over `k` components as evenly as possible (static sizes)."""
     base, extra = divmod(n, k)
@@ -238,6 +249,115 @@ class GaussianMixture(AbstractProposal):
     @property
     def components(self) -> int:
         return jnp.shape(self.logits)[0]
+
+    @classmethod
+    def from_samples(
+        cls,
+        x,
+        weights,
+        lo,
+        hi,
+        components: int = 8,
+        *,
+        iterations: int = 50,
+        min_scale: float = 0.01,
+        prior: float = 1.0,
+    ) -> GaussianMixture:
+        r"""Fit a mixture to weighted samples by expectation-maximisation.
+
+        With samples $x_i$ and weights $w_i \ge 0$, e.g. $w_i = |f(x_i)|/q(x_i)$ for
+        $x_i \sim q$ (importance-weighted samples of $|f|$), EM maximises
+        $\sum_i w_i \log p(x_i)$, i.e. minimises the forward KL divergence from
+        the weighted sample distribution to $p$: responsibilities
+        $r_{ik} \propto \pi_k \mathcal N(x_i; \mu_k, \sigma_k^2)$, then
+        $\pi_k \propto \sum_i w_i r_{ik}$ and $\mu_k$, $\sigma_k^2$ the
+        $w_i r_{ik}$-weighted mean and variance (the M-step ignores the truncation
+        to the box, a good approximation for components inside it). Where the
+        weights are very uneven (a few samples carry most of the mass, as in
+        high dimensions), components sit on those samples; the M-step for
+        $\sigma_k^2$ is therefore a MAP update that adds `prior` effective
+        samples' worth of the samples' overall variance $s^2$,
+        $\sigma_k^2 = (m_k v_k + \tau s^2)/(m_k + \tau)$ with $\tau =
+        \text{prior}/\text{ESS}$, $\text{ESS} = 1/\sum_i w_i^2$ the effective
+        sample size, $m_k = \sum_i w_i r_{ik}$ (the weights sum to one) and
+        $v_k$ the weighted variance; and `min_scale` floors $\sigma$ at that
+        fraction of the box width. So no component collapses to a spike, and
+        well-sampled components keep their own width.
+
+        The means start at weighted farthest points: the heaviest sample first,
+        then repeatedly the sample maximising $w_i \min_k \|x_i - \mu_k\|^2$
+        (a deterministic k-means++), so separated heavy clusters (the modes of
+        $f$) each get a component; the scales start at the weighted standard
+        deviation of all samples.
+
+        **Arguments:** `x` `(m, d)` (or `(m,)` for scalar bounds); `weights`
+        `(m,)`; `lo`, `hi` the box; `components` $K \le m$; `iterations` EM
+        steps (static); `min_scale`, `prior` as above.
+
+        **Returns:** a `GaussianMixture` (a good start for `fit` or `adapt`).
+        """
+        lo, hi = check_bounds(lo, hi)
+        components = check_count(components, "components")
+        iterations = check_count(iterations, "iterations", minimum=0)
+        if not (isinstance(min_scale, (int, float)) and min_scale > 0):
+            raise ValueError(f"`min_scale` must be a positive number, got {min_scale!r}.")
+        if not (isinstance(prior, (int, float)) and prior >= 0):
+            raise ValueError(f"`prior` must be a number >= 0, got {prior!r}.")
+        d = 1 if jnp.ndim(lo) == 0 else jnp.shape(lo)[0]
+        x = jnp.reshape(jnp.asarray(x, lo.dtype), (-1, d))
+        w = jnp.asarray(weights, lo.dtype)
+        m = x.shape[0]
+        if w.shape != (m,) or m < components:
+            raise ValueError(
+                f"`x` must have shape (m, {d}) and `weights` shape (m,) with m >= components = "
+                f"{components}, got {jnp.shape(x)} and {jnp.shape(w)}."
+            )
+        w = jnp.where(jnp.isfinite(w) & (w > 0), w, 0.0)
+        w = w / jnp.maximum(jnp.sum(w), jnp.finfo(w.dtype).tiny)
+        lo_v, hi_v = jnp.reshape(lo, (d,)), jnp.reshape(hi, (d,))
+        floor = min_scale * (hi_v - lo_v)
+
+        def pick(carry, _):
+            means, dist = carry
+            i = jnp.argmax(w * dist)
+            mean = x[i]
+            dist = jnp.minimum(dist, jnp.sum((x - mean) ** 2, axis=-1))
+            return (means, dist), mean
+
+        _, means = jax.lax.scan(pick, (None, jnp.full((m,), jnp.inf, x.dtype)), None, components)
+        tau = prior * jnp.sum(w**2)  # prior effective samples, as a share of the mass
+        centre = jnp.sum(w[:, None] * x, axis=0)
+        spread = jnp.sqrt(jnp.sum(w[:, None] * (x - centre) ** 2, axis=0))
+        scales = jnp.broadcast_to(jnp.maximum(spread, floor), (components, d))
+        log_pi = jnp.full((components,), -jnp.log(components), x.dtype)
+
+        def em(carry, _):
+            log_pi, means, scales = carry
+            z = (x[:, None, :] - means) / scales
+            log_n = jnp.sum(-0.5 * z**2 - jnp.log(scales), axis=-1) + log_pi
+            r = jax.nn.softmax(log_n, axis=-1) * w[:, None]  # (m, K)
+            mass = jnp.sum(r, axis=0)
+            safe = jnp.maximum(mass, jnp.finfo(x.dtype).tiny)
+            new_means = (r.T @ x) / safe[:, None]
+            var = jnp.maximum((r.T @ x**2) / safe[:, None] - new_means**2, 0.0)
+            # MAP update: `prior` effective samples of the overall spread keep components
+            # that rest on one or two heavy samples from becoming spikes.
+            var = (mass[:, None] * var + tau * spread**2) / (mass[:, None] + tau)
+            new_scales = jnp.maximum(jnp.sqrt(var), floor)
+            # A component that lost all its mass keeps its place (and a tiny weight).
+            alive = mass > 0
+            new_means = jnp.where(alive[:, None], new_means, means)
+            new_scales = jnp.where(alive[:, None], new_scales, scales)
+            new_log_pi = jnp.log(jnp.maximum(mass, 1e-12))
+            return (new_log_pi - jax.nn.logsumexp(new_log_pi), new_means, new_scales), None
+
+        (log_pi, means, scales), _ = jax.lax.scan(em, (log_pi, means, scales), None, iterations)
+        gm = cls(jax.random.key(0), lo, hi, components)
+        return eqx.tree_at(
+            lambda g: (g.logits, g.means, g.log_scales),
+            gm,
+            (log_pi, jnp.clip(means, lo_v, hi_v), jnp.log(scales)),
+        )
 
     def _box(self):
         d = self.dim
@@ -405,7 +525,7 @@ class Grid(_MappedProposal):
         wi = gather(width)
         lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
         x = jnp.clip(lo + (hi - lo) * (gather(left) + wi * frac), lo, hi)
-        log_p = -jnp.sum(gather(log_w), axis=-1) - self._log_volume()
+        log_p = -_sum_last(gather(log_w)) - self._log_volume()
         return x, log_p, i
 
     def bin_index(self, x: jax.Array) -> jax.Array:

@@ -25,7 +25,6 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.scipy.special import gammaincc, ndtri
 
 
@@ -116,8 +115,17 @@ def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
     estimates each component is combined on its own and the $\chi^2$ is summed
     over components (with $(k-1)\cdot$size degrees of freedom).
 
-    A part with zero variance (e.g. an exact zero-variance density) dominates:
-    the combined mean is the mean of the zero-variance parts.
+    Parts with zero variance need a rule, since $1/V$ is infinite:
+
+    - zero variance and a non-zero mean (every sample of $f/p$ equal: an exact
+      zero-variance density) is exact, and the exact parts get all the weight;
+    - zero variance and zero mean (every sample zero: e.g. an adaptive round
+      whose density missed the integrand's peak) carries no information and
+      gets no weight, rather than swallowing the others. If every part is like
+      that, the result is 0 with variance 0.
+
+    Only the parts with finite, positive variance enter the $\chi^2$, and the
+    degrees of freedom count them (one fewer than their number).
 
     **Arguments:**
 
@@ -127,24 +135,26 @@ def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
     **Returns:** a `Combined`.
     """
     parts = _stack(estimates)
-    k = parts.n.shape[0]
     var = parts.variance
-    exact = var <= 0
+    flat = var <= 0
+    empty = flat & (parts.mean == 0)
+    exact = flat & ~empty
     any_exact = jnp.any(exact, axis=0)
-    # Zero-variance parts get all the weight among themselves.
-    w = jnp.where(any_exact, exact.astype(var.dtype), 1.0 / jnp.where(exact, 1.0, var))
+    measured = ~flat
+    # Exact parts share all the weight among themselves; otherwise inverse variances.
+    w = jnp.where(any_exact, exact, jnp.where(measured, 1.0 / jnp.where(measured, var, 1.0), 0.0))
+    w = w.astype(var.dtype)
     wsum = jnp.sum(w, axis=0)
-    mean = jnp.sum(w * parts.mean, axis=0) / wsum
-    variance = jnp.where(any_exact, 0.0, 1.0 / wsum)
-    chi2_terms = jnp.where(exact, 0.0, (parts.mean - mean) ** 2 / jnp.where(exact, 1.0, var))
+    informative = wsum > 0
+    mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / jnp.where(informative, wsum, 1.0), 0.0)
+    variance = jnp.where(any_exact | ~informative, 0.0, 1.0 / jnp.where(informative, wsum, 1.0))
+    chi2_terms = jnp.where(measured, (parts.mean - mean) ** 2 / jnp.where(measured, var, 1.0), 0.0)
     chi2 = jnp.sum(chi2_terms)
-    dof = (k - 1) * max(int(np.prod(mean.shape)), 1)
-    if dof > 0:
-        chi2_dof = chi2 / dof
-        q = gammaincc(dof / 2.0, chi2 / 2.0)
-    else:
-        chi2_dof = jnp.zeros_like(chi2)
-        q = jnp.ones_like(chi2)
+    dof = jnp.sum(jnp.maximum(jnp.sum(measured, axis=0) - 1, 0)).astype(var.dtype)
+    has_dof = dof > 0
+    safe_dof = jnp.where(has_dof, dof, 1.0)
+    chi2_dof = jnp.where(has_dof, chi2 / safe_dof, 0.0)
+    q = jnp.where(has_dof, gammaincc(safe_dof / 2.0, chi2 / 2.0), 1.0)
     return Combined(
         mean=mean,
         variance=variance,

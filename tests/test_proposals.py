@@ -185,6 +185,32 @@ def test_grid_edges_argument():
     np.testing.assert_allclose(g.pdf(jnp.array([0.05, 0.3, 0.9])), [1 / 0.3, 1 / 1.2, 1 / 1.5])
 
 
+def test_gm_from_weighted_samples(key):
+    """Weighted EM on uniform samples weighted by f finds f's two separated peaks."""
+    centres = jnp.array([[0.25, 0.7], [0.75, 0.3]])
+    s = 0.05
+    f = lambda x: 0.3 * jnp.exp(-jnp.sum((x - centres[0]) ** 2) / (2 * s * s)) + 0.7 * jnp.exp(
+        -jnp.sum((x - centres[1]) ** 2) / (2 * s * s)
+    )
+    x = jax.random.uniform(key, (20_000, 2))
+    gm = GaussianMixture.from_samples(x, jax.vmap(f)(x), jnp.zeros(2), jnp.ones(2), components=2)
+    order = jnp.argsort(gm.means[:, 0])
+    np.testing.assert_allclose(gm.means[order], centres, atol=0.01)
+    np.testing.assert_allclose(jnp.exp(gm.log_scales[order]), s, rtol=0.1)
+    np.testing.assert_allclose(jax.nn.softmax(gm.logits)[order], [0.3, 0.7], atol=0.03)
+    # A spike of weight on one sample does not collapse a component below the floor.
+    w = jnp.zeros(100).at[3].set(1.0)
+    pts = jax.random.uniform(key, (100, 2))
+    spiky = GaussianMixture.from_samples(pts, w, jnp.zeros(2), jnp.ones(2), 2, min_scale=0.02)
+    assert float(jnp.min(jnp.exp(spiky.log_scales))) >= 0.02 - 1e-12
+    with pytest.raises(ValueError, match="weights"):
+        GaussianMixture.from_samples(pts, jnp.ones(99), jnp.zeros(2), jnp.ones(2), 2)
+    with pytest.raises(ValueError, match="components"):
+        GaussianMixture.from_samples(pts[:1], jnp.ones(1), jnp.zeros(2), jnp.ones(2), 2)
+    with pytest.raises(ValueError, match="min_scale"):
+        GaussianMixture.from_samples(pts, w, jnp.zeros(2), jnp.ones(2), 2, min_scale=0.0)
+
+
 def test_mixture_weights_fixed_unless_trained(key):
     props = _proposals(key)
     mix = props["mix"]

@@ -81,9 +81,24 @@ def test_combine_is_calibrated_for_agreeing_parts():
     np.testing.assert_allclose(jnp.std(z), 1.0, atol=5 / np.sqrt(2 * k))
 
 
-def test_combine_zero_variance_part_dominates():
-    out = combine([_estimate(1.0, 0.0), _estimate(3.0, 1.0)])
-    assert out.mean == 1.0 and out.variance == 0.0
+def test_combine_zero_variance_parts():
+    def est(mean, var):
+        return Estimate(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(100), jnp.asarray(0))
+
+    # An exact part (zero variance, non-zero mean) takes all the weight.
+    c = combine([est(1.0, 0.04), est(2.0, 0.0), est(3.0, 0.01)])
+    assert float(c.mean) == 2.0 and float(c.variance) == 0.0
+    # An all-zero part (a round that missed the peak) carries no information: it is left
+    # out, and the chi2 has one degree of freedom (two measured parts).
+    c = combine([est(1.0, 0.04), est(0.0, 0.0), est(1.2, 0.04)])
+    np.testing.assert_allclose(c.mean, 1.1)
+    np.testing.assert_allclose(c.variance, 0.02)
+    np.testing.assert_allclose(c.chi2_dof, (0.1**2 / 0.04) * 2)
+    np.testing.assert_allclose(c.q, scipy.stats.chi2.sf(0.5, 1))
+    # Nothing but empty parts: zero, with zero variance and no degrees of freedom.
+    c = combine([est(0.0, 0.0), est(0.0, 0.0)])
+    assert float(c.mean) == 0.0 and float(c.variance) == 0.0
+    assert float(c.chi2_dof) == 0.0 and float(c.q) == 1.0
 
 
 def test_combine_rejects_bad_input():

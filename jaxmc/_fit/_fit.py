@@ -193,26 +193,33 @@ def _minimise(loss, solver, params, args, max_steps, throw=False):
     return sol.value, sol.result, sol.stats["num_steps"]
 
 
-def _run_steps(fn_args, loss, solver, params, max_steps):
-    """A fixed number of solver steps with fresh `args` per step (stochastic objectives).
+def _run_steps(fn_args, loss, solver, params, max_steps, steps_per_batch=1):
+    """`max_steps` solver steps, with fresh `args` every `steps_per_batch` steps.
 
-    `fn_args(step, params) -> args` draws the step's base randomness (from a key
-    folded with the step index) or its frozen samples.
+    `fn_args(batch, params) -> args` draws a batch's base randomness (from a key
+    folded with the batch index) or its frozen samples (from the current
+    proposal); the batch then serves `steps_per_batch` consecutive steps, so an
+    expensive integrand is evaluated once per batch. Returns the parameters and
+    the loss at every step.
     """
     aux_fn = lambda y, args: (loss(y, args), None)
     args0 = fn_args(0, params)
     f_struct = jax.eval_shape(lambda: loss(params, args0))
     state = solver.init(aux_fn, params, args0, {}, f_struct, None, frozenset())
 
-    def body(carry, i):
+    def step(carry, _, args):
         y, st = carry
-        args = fn_args(i, y)
         value = loss(y, args)
         y, st, _ = solver.step(aux_fn, y, args, {}, st, frozenset())
         return (y, st), value
 
-    (params, _), losses = jax.lax.scan(body, (params, state), jnp.arange(max_steps))
-    return params, losses
+    def batch(carry, b):
+        args = fn_args(b, carry[0])
+        return jax.lax.scan(lambda c, i: step(c, i, args), carry, None, length=steps_per_batch)
+
+    batches = max_steps // steps_per_batch
+    (params, _), losses = jax.lax.scan(batch, (params, state), jnp.arange(batches))
+    return params, jnp.reshape(losses, (max_steps,))
 
 
 def fit(
@@ -227,6 +234,7 @@ def fit(
     batched: bool = False,
     reuse: bool = False,
     resample: bool = False,
+    steps_per_batch: int = 1,
     filter_spec: Any = None,
     defensive: float = 0.1,
 ) -> FitResult:
@@ -277,6 +285,12 @@ def fit(
     - `reuse`: fit on one batch from the frozen initial proposal.
     - `resample`: run exactly `max_steps` solver steps, each on fresh base
       samples (key folded with the step index); for stochastic optimisers.
+    - `steps_per_batch`: with `resample=True`, take this many solver steps on
+      each drawn batch before drawing the next (`max_steps` must be a multiple):
+      `max_steps / steps_per_batch` batches of `n` integrand evaluations in all.
+      For `"kl"` (and `reuse`) the batch is drawn from the proposal as it was at
+      the batch's start and reweighted at every step, which keeps the objective
+      unbiased while the proposal moves; more optimisation per evaluation.
     - `filter_spec`: which leaves to optimise (default: inexact arrays except
       `lo`/`hi`, see `parameter_spec`).
     - `defensive`: the share $\epsilon$ of the reparameterised objective's
@@ -285,7 +299,10 @@ def fit(
       $m = (1-\epsilon)p_\theta + \epsilon U$. Without it a sample average over
       moving samples can "win" by moving every sample off the peak (where
       $f \approx 0$); the fixed uniform samples keep a starved peak expensive.
-      `0` disables it; ignored for `"reverse_kl"` and frozen samples.
+      For frozen samples (`"kl"`, `reuse`) with `resample=True` the same share
+      of each batch is drawn uniformly, so regions the proposal has starved
+      still get samples (and weights); one frozen batch (`resample=False`) gets
+      none. `0` disables it; ignored for `"reverse_kl"`.
 
     **Returns:** a `FitResult`. Solver failures (e.g. `max_steps` reached) are
     reported in `result`, not raised.
@@ -308,13 +325,27 @@ def fit(
     params, static = _split(proposal, filter_spec)
     solver = _check_solver(solver, params)
 
+    steps_per_batch = check_count(steps_per_batch, "steps_per_batch")
+    if max_steps % steps_per_batch:
+        raise ValueError(
+            f"`max_steps` = {max_steps} must be a multiple of `steps_per_batch` = {steps_per_batch}."
+        )
+    if steps_per_batch > 1 and not resample:
+        raise ValueError("`steps_per_batch` > 1 needs `resample=True`.")
     frozen = reuse or objective == "kl"
+    # One frozen batch gets no uniform share: maximising a weighted likelihood on a fixed
+    # sample can put a spike on one heavily weighted uniform point (a mixture component
+    # shrinks onto it and the objective runs to -inf). Fresh batches leave no such spike.
+    n_def = 0 if frozen and not resample else _defensive_count(defensive, n, objective)
 
     def draw_frozen(k, p):
         prop = eqx.combine(jax.lax.stop_gradient(p), static)
-        x, log_q, w = _draw(prop, k, n)
+        if n_def == 0:
+            x, log_q, w = _draw(prop, k, n)
+        else:
+            x, _, log_q, w = _defensive_draw(prop, k, n, n_def, defensive)
         logf = _log_abs(evaluate(f, x, batched))
-        return x, jax.lax.stop_gradient(logf), log_q, w
+        return x, jax.lax.stop_gradient(logf), jax.lax.stop_gradient(log_q), w
 
     if frozen:
 
@@ -328,7 +359,6 @@ def fit(
         else:
             args = draw_frozen(key, params)
     else:
-        n_def = _defensive_count(defensive, n, objective)
 
         def loss(p, k):
             prop = eqx.combine(p, static)
@@ -344,8 +374,8 @@ def fit(
         args = key
 
     if resample:
-        params, losses = _run_steps(make_args, loss, solver, params, max_steps)
-        final = loss(params, make_args(max_steps - 1, params))
+        params, losses = _run_steps(make_args, loss, solver, params, max_steps, steps_per_batch)
+        final = loss(params, make_args(max_steps // steps_per_batch - 1, params))
         return FitResult(
             proposal=eqx.combine(params, static),
             loss=final,
