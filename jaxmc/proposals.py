@@ -317,14 +317,12 @@ class GaussianMixture(AbstractProposal):
         lo_v, hi_v = jnp.reshape(lo, (d,)), jnp.reshape(hi, (d,))
         floor = min_scale * (hi_v - lo_v)
 
-        def pick(carry, _):
-            means, dist = carry
-            i = jnp.argmax(w * dist)
-            mean = x[i]
-            dist = jnp.minimum(dist, jnp.sum((x - mean) ** 2, axis=-1))
-            return (means, dist), mean
+        def pick(dist, _):
+            mean = x[jnp.argmax(w * dist)]
+            return jnp.minimum(dist, jnp.sum((x - mean) ** 2, axis=-1)), mean
 
-        _, means = jax.lax.scan(pick, (None, jnp.full((m,), jnp.inf, x.dtype)), None, components)
+        # Distances start at 1 (not inf: 0 * inf is nan), so the first pick is the heaviest.
+        _, means = jax.lax.scan(pick, jnp.ones((m,), x.dtype), None, components)
         tau = prior * jnp.sum(w**2)  # prior effective samples, as a share of the mass
         centre = jnp.sum(w[:, None] * x, axis=0)
         spread = jnp.sqrt(jnp.sum(w[:, None] * (x - centre) ** 2, axis=0))

@@ -125,7 +125,9 @@ def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
       that, the result is 0 with variance 0.
 
     Only the parts with finite, positive variance enter the $\chi^2$, and the
-    degrees of freedom count them (one fewer than their number).
+    degrees of freedom count them (one fewer than their number); a part with an
+    infinite or NaN variance gets no weight (if no part has any, the result is
+    NaN with infinite variance).
 
     **Arguments:**
 
@@ -140,14 +142,19 @@ def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
     empty = flat & (parts.mean == 0)
     exact = flat & ~empty
     any_exact = jnp.any(exact, axis=0)
-    measured = ~flat
+    measured = (var > 0) & jnp.isfinite(var)
     # Exact parts share all the weight among themselves; otherwise inverse variances.
     w = jnp.where(any_exact, exact, jnp.where(measured, 1.0 / jnp.where(measured, var, 1.0), 0.0))
     w = w.astype(var.dtype)
     wsum = jnp.sum(w, axis=0)
     informative = wsum > 0
-    mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / jnp.where(informative, wsum, 1.0), 0.0)
-    variance = jnp.where(any_exact | ~informative, 0.0, 1.0 / jnp.where(informative, wsum, 1.0))
+    safe_wsum = jnp.where(informative, wsum, 1.0)
+    # No weight anywhere: all parts empty gives 0 +- 0; otherwise nothing is known.
+    all_empty = jnp.all(empty, axis=0)
+    unknown_mean = jnp.where(all_empty, 0.0, jnp.nan)
+    mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / safe_wsum, unknown_mean)
+    unknown_var = jnp.where(all_empty, 0.0, jnp.inf)
+    variance = jnp.where(any_exact, 0.0, jnp.where(informative, 1.0 / safe_wsum, unknown_var))
     chi2_terms = jnp.where(measured, (parts.mean - mean) ** 2 / jnp.where(measured, var, 1.0), 0.0)
     chi2 = jnp.sum(chi2_terms)
     dof = jnp.sum(jnp.maximum(jnp.sum(measured, axis=0) - 1, 0)).astype(var.dtype)

@@ -333,6 +333,9 @@ def test_bad_inputs():
         adapt(key, f, gm, iterations=3, n_per_iteration=64, objective="entropy")
     with pytest.raises(ValueError, match="stratify"):
         adapt(key, f, gm, iterations=3, n_per_iteration=64, stratify=True)
+    with pytest.raises(ValueError, match="max_strata"):
+        adapt(key, f, Grid(lo, hi), iterations=3, n_per_iteration=64, stratify=True,
+              max_strata=2**23)
     with pytest.raises(TypeError, match="iterations"):
         adapt(key, f, Grid(lo, hi), iterations=2.5, n_per_iteration=64)
     with pytest.raises(ValueError, match="log_q"):

@@ -198,9 +198,13 @@ def test_gm_from_weighted_samples(key):
     np.testing.assert_allclose(gm.means[order], centres, atol=0.01)
     np.testing.assert_allclose(jnp.exp(gm.log_scales[order]), s, rtol=0.1)
     np.testing.assert_allclose(jax.nn.softmax(gm.logits)[order], [0.3, 0.7], atol=0.03)
+    # Zero weights (e.g. f underflowed) are never picked as starting means.
+    w0 = jnp.zeros(100).at[50].set(1.0).at[7].set(0.5)
+    pts = jax.random.uniform(key, (100, 2))
+    two = GaussianMixture.from_samples(pts, w0, jnp.zeros(2), jnp.ones(2), 2, iterations=0)
+    np.testing.assert_allclose(jnp.sort(two.means[:, 0]), jnp.sort(pts[jnp.array([50, 7]), 0]))
     # A spike of weight on one sample does not collapse a component below the floor.
     w = jnp.zeros(100).at[3].set(1.0)
-    pts = jax.random.uniform(key, (100, 2))
     spiky = GaussianMixture.from_samples(pts, w, jnp.zeros(2), jnp.ones(2), 2, min_scale=0.02)
     assert float(jnp.min(jnp.exp(spiky.log_scales))) >= 0.02 - 1e-12
     with pytest.raises(ValueError, match="weights"):

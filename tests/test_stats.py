@@ -99,6 +99,11 @@ def test_combine_zero_variance_parts():
     c = combine([est(0.0, 0.0), est(0.0, 0.0)])
     assert float(c.mean) == 0.0 and float(c.variance) == 0.0
     assert float(c.chi2_dof) == 0.0 and float(c.q) == 1.0
+    # A part of unknown (infinite) variance gets no weight; with nothing else, nothing is known.
+    c = combine([est(1.0, 0.04), est(5.0, jnp.inf)])
+    assert float(c.mean) == 1.0 and float(c.variance) == 0.04
+    c = combine([est(1.0, jnp.inf), est(0.0, 0.0)])
+    assert bool(jnp.isnan(c.mean)) and float(c.variance) == float("inf")
 
 
 def test_combine_rejects_bad_input():

@@ -33,6 +33,8 @@ def _sq_norm(y: jax.Array) -> jax.Array:
 # cube); the rest go where sigma_h is large. vegas's default `neval_frac` is the
 # adaptive share, 0.75.
 _UNIFORM_SHARE = 0.25
+# Hypercube indices are turned into corners in float arithmetic (`_corners`): exact below this.
+_MAX_STRATA = 2**22
 
 
 def _strata(d: int, n: int, max_strata: int) -> tuple[int, ...]:
@@ -205,7 +207,8 @@ def adapt(
     - `warmup`: rounds left out of the combination (`0 <= warmup < iterations`).
     - `alpha`: VEGAS damping exponent for `Grid` (vegas's default 0.5).
     - `stratify`, `beta`, `max_strata`: VEGAS+ stratification for `Grid`
-      (`beta = 0` gives uniform allocation; at most `max_strata` hypercubes).
+      (`beta = 0` gives uniform allocation; at most `max_strata <= 2**22`
+      hypercubes).
     - `solver`, `fit_steps`, `objective`: refitting of non-`Grid` proposals.
     - `batched`: `f` takes a batch.
 
@@ -232,6 +235,8 @@ def adapt(
     alpha = _check_fraction(alpha, "alpha")
     beta = _check_fraction(beta, "beta")
     max_strata = check_count(max_strata, "max_strata")
+    if max_strata > _MAX_STRATA:
+        raise ValueError(f"`max_strata` must be at most 2**22, got {max_strata}.")
     fit_steps = check_count(fit_steps, "fit_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
     is_grid = isinstance(proposal, Grid)

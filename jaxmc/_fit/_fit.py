@@ -258,7 +258,7 @@ def fit(
       $\log(1 + \chi^2)$); same minimiser as the variance, scale-normalised.
     - `"kl"`: $D_{KL}(p_f \| p_\theta)$, estimated on `n` samples drawn once from
       the initial proposal $q$ with weights $|f|/q$ (with `resample=True`:
-      redrawn from the current proposal at each step).
+      redrawn from the current proposal for every batch of `steps_per_batch` steps).
     - `"reverse_kl"`: $D_{KL}(p_\theta \| p_f) = E_p[\log p - \log|f|] + \log I$
       (mode-seeking; $\log|f|$ floored at $e^{-70}$ times its maximum).
 
