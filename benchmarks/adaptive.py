@@ -384,7 +384,7 @@ def run(ctx: Context) -> Result:
         "compile s",
         "t_1e-3 s",
         "err@T",
-        "|z|",
+        "\\|z\\|",
         "Q",
         "var ratio vs vegas",
     ]
