@@ -170,6 +170,20 @@ def test_steps_per_batch_reuses_each_batch():
         fit(jax.random.key(8), f, gm, 64, max_steps=8, steps_per_batch=4)
 
 
+def test_degenerate_batches_are_skipped_not_nan():
+    """A batch where f is zero at every sample (e.g. underflow far from a narrow peak) teaches
+    nothing: the KL fit keeps its parameters instead of turning them into NaN."""
+    lo, hi = box(2)
+    gm = GaussianMixture(jax.random.key(7), lo, hi, components=2)
+    solver = optx.OptaxMinimiser(optax.adam(0.05), rtol=0.0, atol=0.0)
+    zero = lambda x: 0.0 * jnp.sum(x)
+    res = fit(jax.random.key(8), zero, gm, 64, solver=solver, max_steps=6, resample=True,
+              steps_per_batch=2, objective="kl")
+    for a, b in zip(jax.tree.leaves(res.proposal), jax.tree.leaves(gm)):
+        np.testing.assert_array_equal(a, b)
+    assert bool(jnp.all(res.losses == 0.0))
+
+
 def test_mixture_seeded_from_grid_finds_both_camel_modes():
     """Camel in 8-D: a VEGAS+ grid's importance-weighted samples seed a mixture (weighted EM)
     with a component on each mode; `adapt` then gives an unbiased, low-variance estimate."""

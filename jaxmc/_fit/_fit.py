@@ -104,7 +104,10 @@ def _objective(objective: str, logf, log_p, w, log_q=None):
         # D(p_f || p) with p_f = |f|/I, samples weighted by |f|/q (frozen).
         lw = jax.lax.stop_gradient(logf - log_q)
         log_i = jax.nn.logsumexp(lw, b=w)
-        nw = w * jnp.exp(lw - log_i)
+        # A batch where f is zero at every sample carries no information: no loss, no gradient.
+        seen = jnp.isfinite(log_i)
+        log_i = jnp.where(seen, log_i, 0.0)
+        nw = jnp.where(seen, w * jnp.exp(lw - log_i), 0.0)
         safe_logf = jnp.where(nw > 0, logf, 0.0)
         safe_logp = jnp.where(nw > 0, log_p, 0.0)
         return jnp.sum(nw * (safe_logf - log_i - safe_logp))
@@ -199,8 +202,9 @@ def _run_steps(fn_args, loss, solver, params, max_steps, steps_per_batch=1):
     `fn_args(batch, params) -> args` draws a batch's base randomness (from a key
     folded with the batch index) or its frozen samples (from the current
     proposal); the batch then serves `steps_per_batch` consecutive steps, so an
-    expensive integrand is evaluated once per batch. Returns the parameters and
-    the loss at every step.
+    expensive integrand is evaluated once per batch. A step whose loss or new
+    parameters are not finite is skipped. Returns the parameters and the loss at
+    every step.
     """
     aux_fn = lambda y, args: (loss(y, args), None)
     args0 = fn_args(0, params)
@@ -210,8 +214,14 @@ def _run_steps(fn_args, loss, solver, params, max_steps, steps_per_batch=1):
     def step(carry, _, args):
         y, st = carry
         value = loss(y, args)
-        y, st, _ = solver.step(aux_fn, y, args, {}, st, frozenset())
-        return (y, st), value
+        y_new, st_new, _ = solver.step(aux_fn, y, args, {}, st, frozenset())
+        # A step that went non-finite (a degenerate batch, an overflow) is skipped: one
+        # NaN in the parameters would otherwise end the fit for good.
+        ok = jnp.isfinite(value) & jnp.all(
+            jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree_util.tree_leaves(y_new)])
+        )
+        keep = lambda new, old: jnp.where(ok, new, old)
+        return (jax.tree.map(keep, y_new, y), jax.tree.map(keep, st_new, st)), value
 
     def batch(carry, b):
         args = fn_args(b, carry[0])
