@@ -318,11 +318,14 @@ class GaussianMixture(AbstractProposal):
         floor = min_scale * (hi_v - lo_v)
 
         def pick(dist, _):
-            mean = x[jnp.argmax(w * dist)]
+            # Zero-weight samples score below every positive one (never picked while any is left).
+            mean = x[jnp.argmax(jnp.where(w > 0, w * dist, -1.0))]
             return jnp.minimum(dist, jnp.sum((x - mean) ** 2, axis=-1)), mean
 
-        # Distances start at 1 (not inf: 0 * inf is nan), so the first pick is the heaviest.
-        _, means = jax.lax.scan(pick, jnp.ones((m,), x.dtype), None, components)
+        first = x[jnp.argmax(w)]
+        dist0 = jnp.sum((x - first) ** 2, axis=-1)
+        _, rest = jax.lax.scan(pick, dist0, None, components - 1)
+        means = jnp.concatenate([first[None], rest], axis=0)
         tau = prior * jnp.sum(w**2)  # prior effective samples, as a share of the mass
         centre = jnp.sum(w[:, None] * x, axis=0)
         spread = jnp.sqrt(jnp.sum(w[:, None] * (x - centre) ** 2, axis=0))
@@ -337,7 +340,10 @@ class GaussianMixture(AbstractProposal):
             mass = jnp.sum(r, axis=0)
             safe = jnp.maximum(mass, jnp.finfo(x.dtype).tiny)
             new_means = (r.T @ x) / safe[:, None]
-            var = jnp.maximum((r.T @ x**2) / safe[:, None] - new_means**2, 0.0)
+            # Two passes (deviations from the new means): E[x^2] - mean^2 cancels in float32
+            # when the box is far from the origin.
+            dev2 = (x[:, None, :] - new_means) ** 2
+            var = jnp.einsum("mk,mkd->kd", r, dev2) / safe[:, None]
             # MAP update: `prior` effective samples of the overall spread keep components
             # that rest on one or two heavy samples from becoming spikes.
             var = (mass[:, None] * var + tau * spread**2) / (mass[:, None] + tau)
@@ -414,6 +420,12 @@ class _MappedProposal(AbstractProposal):
         u = _random.uniform(key, (n, self.dim), self.lo.dtype)
         x, log_p = self.map(u)
         return _from_matrix(self, x), jnp.exp(log_p)
+
+    def _draw(self, key, n):
+        # The map's log density directly: exp then log would underflow in high dimensions.
+        u = _random.uniform(key, (n, self.dim), self.lo.dtype)
+        x, log_p = self.map(u)
+        return _from_matrix(self, x), log_p, jnp.full((n,), 1.0 / n, log_p.dtype)
 
 
 def _grid_check(bins: int) -> int:
@@ -547,11 +559,6 @@ class Grid(_MappedProposal):
             axis=-1,
         )
         return jnp.reshape(jnp.where(inside, lp, -jnp.inf), batch)
-
-    def _draw(self, key, n):
-        u = _random.uniform(key, (n, self.dim), self.lo.dtype)
-        x, log_p = self.map(u)
-        return _from_matrix(self, x), log_p, jnp.full((n,), 1.0 / n, log_p.dtype)
 
     def refine(self, x, weights, *, alpha: float = 0.5, counts=None) -> Grid:
         r"""One step of the VEGAS grid adaptation (Lepage 1978; vegas's `AdaptiveMap.adapt`).

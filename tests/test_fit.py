@@ -341,6 +341,8 @@ def test_bad_inputs():
         fit(key, f, gm, 0)
     with pytest.raises(ValueError, match="defensive"):
         fit(key, f, gm, 64, defensive=1.5)
+    with pytest.raises(ValueError, match="defensive"):
+        fit(key, f, gm, 64, objective="kl", defensive=-0.1)
     with pytest.raises(ValueError, match="warmup"):
         adapt(key, f, gm, iterations=3, n_per_iteration=64, warmup=3)
     with pytest.raises(ValueError, match="objective"):
@@ -376,3 +378,17 @@ def test_vegas_plus_allocation(d, n):
     np.testing.assert_array_equal(cube, np.repeat(np.arange(h), counts))
     corners = np.asarray(_corners(jnp.asarray(cube), strata, jnp.float32))
     np.testing.assert_array_equal(corners, np.stack(np.unravel_index(cube, strata), axis=-1))
+
+
+def test_vegas_plus_allocation_never_below_floor():
+    """Many hypercubes and very uneven sigma (half of them zero): the float cumsum of the
+    shares is summed as a tree and can step down; the counts must still keep the floor."""
+    from jaxmc._fit._adapt import _allocate
+
+    n, h = 524_288, 65_536
+    for seed in range(3):
+        k1, k2 = jax.random.split(jax.random.key(seed))
+        sigma = jax.random.uniform(k1, (h,), jnp.float32) ** 8
+        sigma = jnp.where(jax.random.bernoulli(k2, 0.5, (h,)), sigma, 0.0)
+        counts = np.asarray(jax.jit(lambda s: _allocate(s, n, 0.75))(sigma))
+        assert counts.sum() == n and counts.min() >= 2, (counts.min(), counts.sum())

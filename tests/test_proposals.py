@@ -203,6 +203,22 @@ def test_gm_from_weighted_samples(key):
     pts = jax.random.uniform(key, (100, 2))
     two = GaussianMixture.from_samples(pts, w0, jnp.zeros(2), jnp.ones(2), 2, iterations=0)
     np.testing.assert_allclose(jnp.sort(two.means[:, 0]), jnp.sort(pts[jnp.array([50, 7]), 0]))
+    # Seeding does not depend on the box's scale: a light but separate cluster far away
+    # (distance > 1) still gets a component.
+    kc, kf = jax.random.split(key)
+    near = 3.0 * jax.random.normal(kc, (50,))
+    pts1 = jnp.concatenate([near, jnp.full((5,), 15.0)])
+    w1 = jnp.concatenate([jnp.ones(50), jnp.full((5,), 0.5)])
+    for scale in (1.0, 0.01):
+        seeded = GaussianMixture.from_samples(scale * pts1, w1, -20.0 * scale, 20.0 * scale, 2,
+                                              iterations=0)
+        assert float(jnp.max(seeded.means)) == pytest.approx(15.0 * scale), seeded.means
+    # float32 far from the origin: the EM variance is computed from deviations.
+    far = 1000.5 + 0.02 * jax.random.normal(kf, (2000, 2))
+    lo32, hi32 = jnp.full(2, 1000.0, jnp.float32), jnp.full(2, 1001.0, jnp.float32)
+    g32 = GaussianMixture.from_samples(far.astype(jnp.float32), jnp.ones(2000, jnp.float32),
+                                       lo32, hi32, 1, prior=0.0, min_scale=1e-4)
+    np.testing.assert_allclose(jnp.exp(g32.log_scales), 0.02, rtol=0.1)
     # A spike of weight on one sample does not collapse a component below the floor.
     w = jnp.zeros(100).at[3].set(1.0)
     spiky = GaussianMixture.from_samples(pts, w, jnp.zeros(2), jnp.ones(2), 2, min_scale=0.02)

@@ -71,9 +71,10 @@ def _allocate(sigma: jax.Array, n: int, beta) -> jax.Array:
     s = jnp.where(jnp.isfinite(sigma) & (sigma > 0), sigma, 0.0) ** beta
     total = jnp.sum(s)
     share = jnp.where(total > 0, s / jnp.where(total > 0, total, 1.0), 1.0 / h)
-    # Cumulative sums of non-negative terms never decrease, so neither do the rounded ones.
     cum = jnp.minimum(jnp.floor(jnp.cumsum(share) * spare + 0.5), spare).astype(jnp.int32)
-    cum = cum.at[-1].set(spare)
+    # A float cumsum summed as a tree (as XLA does on the CPU) can step down by a rounding
+    # error; a running maximum restores monotone counts, so no cube drops below m0.
+    cum = jax.lax.cummax(cum).at[-1].set(spare)
     return m0 + jnp.diff(cum, prepend=0)
 
 
@@ -252,11 +253,7 @@ def adapt(
         solver = _check_solver(solver, params)
 
     if stratify:
-        strata = _strata(proposal.dim, n, max_strata)
-        if 2 * math.prod(strata) > n:
-            raise ValueError(
-                f"`n_per_iteration` = {n} is too small to stratify in {proposal.dim} dimensions."
-            )
+        strata = _strata(proposal.dim, n, max_strata)  # at least two samples per cube
         sigma0 = jnp.ones((math.prod(strata),), proposal.lo.dtype)
     else:
         sigma0 = jnp.zeros((1,), jnp.result_type(float))

@@ -118,9 +118,13 @@ def _objective(objective: str, logf, log_p, w, log_q=None):
     return jnp.sum(rev_w * (log_p - lf)) + log_i
 
 
-def _defensive_count(defensive, n: int, objective: str) -> int:
+def _check_defensive(defensive) -> float:
     if not (isinstance(defensive, (int, float)) and 0 <= defensive < 1):
         raise ValueError(f"`defensive` must be a number in [0, 1), got {defensive!r}.")
+    return defensive
+
+
+def _defensive_count(defensive, n: int, objective: str) -> int:
     if objective == "reverse_kl" or defensive == 0:
         return 0
     n_def = int(round(defensive * n))
@@ -293,14 +297,17 @@ def fit(
     - `max_steps`: solver step limit (with `resample=True`, the exact number).
     - `batched`: `f` takes a batch.
     - `reuse`: fit on one batch from the frozen initial proposal.
-    - `resample`: run exactly `max_steps` solver steps, each on fresh base
-      samples (key folded with the step index); for stochastic optimisers.
+    - `resample`: run exactly `max_steps` solver steps on fresh base samples
+      (key folded with the batch index); for stochastic optimisers.
     - `steps_per_batch`: with `resample=True`, take this many solver steps on
-      each drawn batch before drawing the next (`max_steps` must be a multiple):
-      `max_steps / steps_per_batch` batches of `n` integrand evaluations in all.
-      For `"kl"` (and `reuse`) the batch is drawn from the proposal as it was at
-      the batch's start and reweighted at every step, which keeps the objective
-      unbiased while the proposal moves; more optimisation per evaluation.
+      each batch before drawing the next (`max_steps` must be a multiple).
+      For frozen samples (`"kl"`, or `reuse`) the batch is drawn from the
+      proposal as it was at the batch's start, `f` is evaluated once, and the
+      samples are reweighted at every step, which keeps the objective unbiased
+      while the proposal moves: `max_steps / steps_per_batch` batches of `n`
+      integrand evaluations in all, more optimisation per evaluation. For the
+      reparameterised objectives the batch's base samples are reused, but the
+      points move with the parameters, so `f` is evaluated at every step.
     - `filter_spec`: which leaves to optimise (default: inexact arrays except
       `lo`/`hi`, see `parameter_spec`).
     - `defensive`: the share $\epsilon$ of the reparameterised objective's
@@ -342,6 +349,7 @@ def fit(
         )
     if steps_per_batch > 1 and not resample:
         raise ValueError("`steps_per_batch` > 1 needs `resample=True`.")
+    defensive = _check_defensive(defensive)
     frozen = reuse or objective == "kl"
     # One frozen batch gets no uniform share: maximising a weighted likelihood on a fixed
     # sample can put a spike on one heavily weighted uniform point (a mixture component
