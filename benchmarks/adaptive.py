@@ -35,6 +35,9 @@ TITLE = "Adaptive integration against vegas"
 TOL = 1e-3
 GRID_BINS = 256  # per axis (vegas: up to 1000; 256 measured best for jaxmc's rule here)
 GM_COMPONENTS = 8  # for every case: no knowledge of the number of modes
+# Capacity of a Partition: one cell per this many evaluations of a round (at least 4).
+PARTITION_SAMPLES_PER_CELL = 5
+PARTITION_MAX_D = 4  # a partition needs ~h^(1-d) cells at resolution h: low dimensions only
 FLOW_STEPS_PER_BATCH = 8  # Adam steps on each evaluated batch (reweighted, forward KL)
 # |estimate - I| / stderr above which a run counts as biased (its variance is not trusted).
 MAX_Z = 5.0
@@ -262,6 +265,28 @@ def _run_grid(case, iterations, n, repeats, bins=GRID_BINS):
     return _run_timed(case, run, n, repeats, iterations * n)
 
 
+def _run_partition(case, iterations, n, repeats):
+    """MISER-like stratified sampling on a `Partition` of `n // PARTITION_SAMPLES_PER_CELL` cells.
+
+    The first half of the iterations are warm-up, as for `Grid+`.
+    """
+    from jaxmc.fit import adapt
+    from jaxmc.proposals import Partition
+
+    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
+    cells = n // PARTITION_SAMPLES_PER_CELL
+
+    @jax.jit
+    def run(key):
+        est, _ = adapt(
+            key, case["f"], Partition(lo, hi, cells), iterations=iterations, n_per_iteration=n,
+            warmup=max(1, iterations // 2),
+        )
+        return est
+
+    return _run_timed(case, run, n, repeats, iterations * n)
+
+
 def _run_gm(case, iterations, n, repeats, components=GM_COMPONENTS):
     """A GaussianMixture started from a VEGAS+ grid's importance-weighted samples.
 
@@ -397,6 +422,8 @@ def run(ctx: Context) -> Result:
         if vegas is not None:
             results["vegas"] = _run_vegas(vegas, case, iterations, n, repeats)
         results["jaxmc Grid+"] = _run_grid(case, iterations, n, repeats)
+        if case["d"] <= PARTITION_MAX_D:
+            results["jaxmc Partition"] = _run_partition(case, iterations, n, repeats)
         if not case["separable"] or case["d"] >= 8:
             results["jaxmc GM"] = _run_gm(case, iterations, n, repeats)
             results.update(_run_flow(case, iterations, n, repeats))
@@ -437,7 +464,9 @@ def run(ctx: Context) -> Result:
         "iterations as warm-up; jaxmc `GM`: a GaussianMixture of "
         f"{GM_COMPONENTS} components seeded by weighted EM on importance-weighted samples of a "
         "VEGAS+ grid (4 rounds of the grid, 1 batch to seed, 5 rounds of `adapt` with 32 BFGS "
-        "steps per round on the round's own samples). `rel_sd` is per sample, from the last "
+        "steps per round on the round's own samples); jaxmc `Partition` (d <= "
+        f"{PARTITION_MAX_D}): `adapt` on a `Partition` of n/{PARTITION_SAMPLES_PER_CELL} cells, "
+        "stratified over its cells (MISER-like), first half of the iterations as warm-up. `rel_sd` is per sample, from the last "
         "round; `t_1e-3` and `err@T` "
         "are projections from the measured steady-state times (T = vegas's `t_1e-3`); "
         "`var ratio` = (vegas rel_sd / method rel_sd)^2, i.e. variance per evaluation relative "

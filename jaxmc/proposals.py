@@ -807,5 +807,7 @@ class Mixture(AbstractProposal):
         return x, self.log_pdf(x), w
 
 
-# The normalising flow lives in its own module (it subclasses AbstractProposal).
+# The normalising flow and the partition live in their own modules (they subclass
+# AbstractProposal).
 from ._flow import Flow as Flow  # noqa: E402
+from ._partition import Partition as Partition  # noqa: E402

@@ -10,7 +10,7 @@ import pytest
 
 import jaxmc
 from jaxmc.fit import FitResult, adapt, fit, fit_on_samples
-from jaxmc.proposals import GaussianMixture, Grid, Mixture, PiecewiseLinear, Uniform
+from jaxmc.proposals import GaussianMixture, Grid, Mixture, Partition, PiecewiseLinear, Uniform
 
 
 def peak(d, centre=0.3, s=0.05):
@@ -324,6 +324,118 @@ def test_adapt_gm_and_reuse_for_related_integrand():
     assert abs(float(est2.mean) - 1.0) < 5 * float(est2.stderr)
 
 
+def _annulus(r1, r2):
+    """The i-flow annulus on the unit square: 1 between radii r1 and r2 around the centre."""
+
+    def f(x):
+        r2_ = jnp.sum((x - 0.5) ** 2)
+        return jnp.where((r2_ >= r1**2) & (r2_ <= r2**2), 1.0, 0.0)
+
+    return f
+
+
+def test_partition_beats_vegas_plus_on_the_annulus():
+    """An indicator with a curved edge: stratified sampling on an adaptive partition puts
+    its cells along the edge, where all the variance is; VEGAS+'s separable grid cannot.
+    Same n per round, same rounds: at least 3x lower variance per evaluation (measured
+    5-11x over seeds); over 32 seeds the error bars are calibrated."""
+    f = _annulus(0.2, 0.45)
+    exact = np.pi * (0.45**2 - 0.2**2)
+    lo, hi = box(2)
+    n = 8000
+    part_run = jax.jit(
+        jax.vmap(
+            lambda k: adapt(
+                k, f, Partition(lo, hi, 1024), iterations=8, n_per_iteration=n, warmup=4
+            )
+        )
+    )
+    grid_run = jax.jit(
+        lambda k: adapt(
+            k, f, Grid(lo, hi, 64), iterations=8, n_per_iteration=n, warmup=4, stratify=True
+        )
+    )
+    ests, parts = part_run(jax.random.split(jax.random.key(5), 32))
+    z = (np.asarray(ests.mean) - exact) / np.asarray(ests.stderr)
+    assert np.all(np.abs(z) < 5) and 0.4 < z.std() < 1.6, z
+    # 32 runs x 3 dof: the mean chi2/dof has standard deviation ~0.14 about 1.
+    assert 0.3 < float(jnp.mean(ests.chi2_dof)) < 1.7, ests.chi2_dof
+    est_grid, _ = grid_run(jax.random.key(5))
+    var_part, var_grid = float(ests.parts.variance[0, -1]), float(est_grid.parts.variance[-1])
+    assert var_grid > 3 * var_part, (var_grid, var_part)
+    part = jax.tree.map(lambda a: a[0], parts)
+    # The partition filled its capacity, and its cells are finest on the two circles.
+    lower, upper, _, leaf = (np.asarray(a) for a in part.cells())
+    assert leaf.sum() == 1024
+    centre = 0.5 * (lower + upper)[leaf]
+    radius = np.linalg.norm(centre - 0.5, axis=1)
+    side = (upper - lower)[leaf].max(axis=1)
+    gap = np.minimum(np.abs(radius - 0.2), np.abs(radius - 0.45))  # to the nearer circle
+    finest = side == side.min()
+    assert side.min() <= 1 / 64 and np.all(gap[finest] < 3 * side[finest])
+    assert np.all(side[gap > 0.1] >= 4 * side.min())
+
+
+def test_partition_vmap_family_and_reuse():
+    """A family of annuli in one compiled call; the error bars cover every member."""
+    lo, hi = box(2)
+    outer = jnp.array([0.3, 0.38, 0.45])
+
+    def one(r2, key):
+        est, _ = adapt(key, _annulus(0.2, r2), Partition(lo, hi, 256), iterations=6,
+                       n_per_iteration=2048, warmup=2)
+        return est
+
+    ests = jax.jit(jax.vmap(one))(outer, jax.random.split(jax.random.key(8), 3))
+    exact = np.pi * (np.asarray(outer) ** 2 - 0.2**2)
+    z = np.abs(np.asarray(ests.mean) - exact) / np.asarray(ests.stderr)
+    assert np.all(z < 5), z
+    assert np.all(np.asarray(ests.stderr) < 0.01 * exact)
+    # A fitted partition passed back in keeps its cells (and is sampled as a density).
+    est, part = adapt(jax.random.key(9), _annulus(0.2, 0.45), Partition(lo, hi, 256),
+                      iterations=4, n_per_iteration=2048)
+    est2, part2 = adapt(jax.random.key(10), _annulus(0.2, 0.44), part, iterations=2,
+                        n_per_iteration=2048)
+    assert int(part2.n_cells) == 256
+    assert float(est2.stderr) < float(est.parts.variance[0]) ** 0.5 / 4
+    assert abs(float(est2.mean) - np.pi * (0.44**2 - 0.04)) < 5 * float(est2.stderr)
+
+
+def test_partition_allocation():
+    """Counts sum to n, at least two per leaf, none past the leaves, even share plus the
+    rest in proportion to the weights."""
+    from jaxmc._fit._partition import _allocate
+
+    slots, count, n = 64, 40, 1000
+    w = jax.random.uniform(jax.random.key(0), (slots,)) ** 3
+    vol = jnp.full((slots,), 1.0 / count)
+    counts = np.asarray(_allocate(w, vol, jnp.asarray(count), n, 1.0))
+    assert counts.sum() == n and counts[:count].min() >= 2 and counts[count:].max() == 0
+    spare = n - 2 * count
+    share = 0.25 / count + 0.75 * np.asarray(w)[:count] / np.asarray(w)[:count].sum()
+    assert np.all(np.abs(counts[:count] - 2 - spare * share) <= 1 + 1e-6)
+    # No positive weight: the adaptive share follows the volumes.
+    flat = np.asarray(_allocate(jnp.zeros(slots), vol, jnp.asarray(count), n, 1.0))
+    assert flat.sum() == n and flat[:count].max() - flat[:count].min() <= 1
+
+
+def test_fit_partition_masses():
+    """A Partition's cell masses are parameters: BFGS on the variance objective cuts the
+    variance of a grown partition whose masses were scrambled."""
+    f = peak(2, s=0.1)
+    lo, hi = box(2)
+    _, part = adapt(jax.random.key(0), f, Partition(lo, hi, 64), iterations=3,
+                    n_per_iteration=512)
+    scrambled = eqx.tree_at(lambda p: p.logits, part, jnp.zeros_like(part.logits))
+    res = eqx.filter_jit(lambda k, q: fit(k, f, q, 2048, max_steps=100))(
+        jax.random.key(1), scrambled
+    )
+    k = jax.random.key(2)
+    v0 = float(per_sample_variance(k, f, scrambled, 8000))
+    v1 = float(per_sample_variance(k, f, res.proposal, 8000))
+    assert v1 < v0 / 3, (v0, v1)
+
+
 def test_bad_inputs():
     f = peak(2)
     lo, hi = box(2)
@@ -354,6 +466,10 @@ def test_bad_inputs():
               max_strata=2**23)
     with pytest.raises(TypeError, match="iterations"):
         adapt(key, f, Grid(lo, hi), iterations=2.5, n_per_iteration=64)
+    with pytest.raises(ValueError, match="max_cells"):
+        adapt(key, f, Partition(lo, hi, 64), iterations=2, n_per_iteration=255)
+    with pytest.raises(ValueError, match="passes"):
+        adapt(key, f, Partition(lo, hi, 8), iterations=2, n_per_iteration=64, passes=0)
     with pytest.raises(ValueError, match="log_q"):
         fit_on_samples(gm, jnp.zeros((4, 2)), jnp.ones(4), jnp.zeros(3))
 

@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from jaxmc.proposals import GaussianMixture, Grid, Mixture, PiecewiseLinear, Uniform
+from jaxmc.fit import adapt
+from jaxmc.proposals import (
+    GaussianMixture,
+    Grid,
+    Mixture,
+    Partition,
+    PiecewiseLinear,
+    Uniform,
+)
 
 
 LO2, HI2 = jnp.array([0.0, -1.0]), jnp.array([1.0, 2.0])
@@ -36,6 +44,15 @@ def _random_linear(key, lo, hi, bins):
     return eqx.tree_at(lambda q: q.log_heights, p, jax.random.normal(key, p.log_heights.shape))
 
 
+@eqx.filter_jit
+def _grown_partition(key, lo, hi, cells=64):
+    """A partition grown by `adapt` on an off-centre peak, then given random cell masses."""
+    c = lo + 0.3 * (hi - lo)
+    f = lambda x: jnp.exp(-20.0 * jnp.sum((x - c) ** 2))
+    _, part = adapt(key, f, Partition(lo, hi, cells), iterations=3, n_per_iteration=4 * cells)
+    return eqx.tree_at(lambda p: p.logits, part, jax.random.normal(key, part.logits.shape))
+
+
 def _proposals(key):
     k1, k2, k3 = jax.random.split(key, 3)
     gm = GaussianMixture(k1, LO2, HI2, components=3)
@@ -52,10 +69,12 @@ def _proposals(key):
     grid = _random_grid(k2, LO2, HI2, 16)
     mix = Mixture((gm, grid, Uniform(LO2, HI2)), (0.5, 0.3, 0.2))
     linear = _random_linear(k3, LO2, HI2, 5)
-    return {"gm": gm, "grid": grid, "mix": mix, "linear": linear}
+    partition = _grown_partition(jax.random.fold_in(key, 4), LO2, HI2)
+    assert int(partition.n_cells) > 32  # the peak made it grow
+    return {"gm": gm, "grid": grid, "mix": mix, "linear": linear, "partition": partition}
 
 
-@pytest.mark.parametrize("name", ["gm", "grid", "mix", "linear"])
+@pytest.mark.parametrize("name", ["gm", "grid", "mix", "linear", "partition"])
 def test_normalised_and_consistent(key, name):
     prop = _proposals(key)[name]
     total = _quad_2d(lambda x: pdf(prop, x), LO2, HI2, m=600)
@@ -73,7 +92,7 @@ def test_normalised_and_consistent(key, name):
     assert abs(float(est) - 3.0) < 5 * float(se) + 1e-9
 
 
-@pytest.mark.parametrize("name", ["gm", "grid", "linear"])
+@pytest.mark.parametrize("name", ["gm", "grid", "linear", "partition"])
 def test_sampling_law_1d(key, name):
     """Binned chi-square of 1-D samples against the pdf integrated per bin."""
     if name == "gm":
@@ -85,6 +104,8 @@ def test_sampling_law_1d(key, name):
         )
     elif name == "grid":
         prop = _random_grid(key, -1.0, 2.0, 12)
+    elif name == "partition":
+        prop = _grown_partition(key, -1.0, 2.0, cells=16)
     else:
         prop = _random_linear(key, -1.0, 2.0, 7)
     n, bins = 40_000, 30
@@ -113,11 +134,12 @@ def test_truncated_far_tail():
     assert bool(jnp.all(jnp.isfinite(p)))
 
 
-@pytest.mark.parametrize("name", ["gm", "grid", "mix", "linear"])
+@pytest.mark.parametrize("name", ["gm", "grid", "mix", "linear", "partition"])
 def test_gradients_finite(key, name):
     prop = _proposals(key)[name]
     x, _ = sample(prop, key, 256)
-    grads = eqx.filter_jit(jax.grad(lambda q: jnp.sum(q.log_pdf(x))))(prop)
+    # filter_grad: a Partition's tree structure is integer arrays.
+    grads = eqx.filter_jit(eqx.filter_grad(lambda q: jnp.sum(q.log_pdf(x))))(prop)
     leaves = [g for g in jax.tree.leaves(grads) if g is not None]
     assert leaves and all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
 
@@ -129,7 +151,7 @@ def test_gradients_finite(key, name):
         xs, ps = q.sample(jax.random.key(3), 256)
         return jnp.mean(jnp.sum(xs**2, axis=-1) / ps)
 
-    g2 = eqx.filter_jit(jax.grad(est))(prop)
+    g2 = eqx.filter_jit(eqx.filter_grad(est))(prop)
     assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(g2))
 
 
@@ -176,6 +198,32 @@ def test_grid_refine_vegas_rule(key):
         x, p = g2.sample(jax.random.fold_in(key, i), 20_000)
         g2 = g2.refine(x, (2 * x / p) ** 2, alpha=0.5)
     np.testing.assert_allclose(g2.edges[0], np.sqrt(np.linspace(0, 1, 9)), atol=0.03)
+
+
+def test_partition_cells_tile_the_box(key):
+    """The leaves are disjoint dyadic boxes covering the box; points are located in theirs."""
+    part = _grown_partition(key, LO2, HI2, cells=128)
+    lower, upper, mass, leaf = (np.asarray(a) for a in part.cells())
+    lower, upper, mass = lower[leaf], upper[leaf], mass[leaf]
+    assert 64 < leaf.sum() == int(part.n_cells) <= 128
+    np.testing.assert_allclose(np.prod(upper - lower, axis=1).sum(), 3.0, rtol=1e-12)
+    np.testing.assert_allclose(mass.sum(), 1.0, rtol=1e-12)
+    x, p = sample(part, jax.random.fold_in(key, 1), 5000)
+    u = (np.asarray(x) - np.asarray(LO2)) / np.asarray(HI2 - LO2)
+    found = np.asarray(part._locate(jnp.asarray(u)))
+    lo_all, hi_all, _, _ = (np.asarray(a) for a in part.cells())
+    assert np.all(np.asarray(part.child)[found] < 0)
+    assert np.all((lo_all[found] <= np.asarray(x)) & (np.asarray(x) <= hi_all[found]))
+    # Every point lies in exactly one leaf (the boxes only share faces).
+    inside = (np.asarray(x)[:, None] > lower[None]) & (np.asarray(x)[:, None] < upper[None])
+    np.testing.assert_array_equal(inside.all(-1).sum(1), 1)
+    # The density is P_c / V_c on each leaf.
+    vol = np.prod(hi_all[found] - lo_all[found], axis=1)
+    np.testing.assert_allclose(p, np.exp(np.asarray(part._log_mass()))[found] / vol, rtol=1e-12)
+    # The fitting draw is stratified over the leaves with weights P_c / n_c: exact mass sums.
+    xs, log_p, w = part._draw(key, 1000)
+    np.testing.assert_allclose(jnp.sum(w), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(log_p, part.log_pdf(xs), rtol=1e-12)
 
 
 def test_grid_edges_argument():
@@ -258,6 +306,10 @@ def test_bad_inputs(key):
         PiecewiseLinear(0.0, 1.0, bins=0)
     with pytest.raises(ValueError, match="lo"):
         PiecewiseLinear(jnp.ones(2), jnp.zeros(2))
+    with pytest.raises(ValueError, match="max_cells"):
+        Partition(0.0, 1.0, max_cells=0)
+    with pytest.raises(ValueError, match="lo"):
+        Partition(jnp.ones(2), jnp.zeros(2))
     with pytest.raises(ValueError, match="x"):
         PiecewiseLinear(jnp.zeros(2), jnp.ones(2)).pdf(jnp.zeros(3))
     with pytest.raises(ValueError, match="weights"):

@@ -14,9 +14,10 @@ import optimistix as optx
 
 from .. import _random
 from .._checks import check_callable, check_choice, check_count, check_key, evaluate, ratio
-from ..proposals import Grid
+from ..proposals import Grid, Partition
 from ..stats import Combined, Estimate, combine, estimate_iid
 from ._fit import OBJECTIVES, _check_proposal, _check_solver, _log_abs, _objective, _split
+from ._partition import _stratified_round
 
 
 def _check_fraction(value, name: str, lo: float = 0.0, hi: float = math.inf) -> float:
@@ -165,6 +166,7 @@ def adapt(
     stratify: bool = False,
     beta: float = 0.75,
     max_strata: int = 2**16,
+    passes: int = 4,
     solver: optx.AbstractMinimiser | None = None,
     fit_steps: int = 32,
     objective: str = "variance",
@@ -183,6 +185,13 @@ def adapt(
       the rest $\propto \sigma_h^\beta$ (adaptive stratified sampling of VEGAS+,
       Lepage 2021), $\sigma_h$ the previous round's standard deviation of $f/p$
       in hypercube $h$;
+    - a `Partition` is always sampled stratified: each leaf (cell) gets two
+      points, a quarter of the rest in proportion to its volume $V_c$ and the
+      rest $\propto (V_c\sigma_c)^\beta$ (Neyman allocation at $\beta = 1$);
+      then `passes` times on the round's points, the leaves with the largest
+      $V_c\sigma_c$ are halved (as many as `max_cells` allows), and the cell
+      masses are set to $\propto V_c \sqrt{\overline{f^2}}$ (MISER-like
+      recursive stratified sampling, Press & Farrar 1990);
     - any other proposal by `fit_steps` steps of `solver` (default BFGS) on the
       round's samples, reweighted from the frozen density they came from
       (`fit_on_samples`): no extra integrand evaluations.
@@ -210,6 +219,8 @@ def adapt(
     - `stratify`, `beta`, `max_strata`: VEGAS+ stratification for `Grid`
       (`beta = 0` gives uniform allocation; at most `max_strata <= 2**22`
       hypercubes).
+    - `passes`: rounds of cell splitting per iteration for `Partition`
+      (static int >= 1; each can double the number of cells).
     - `solver`, `fit_steps`, `objective`: refitting of non-`Grid` proposals.
     - `batched`: `f` takes a batch.
 
@@ -240,13 +251,20 @@ def adapt(
         raise ValueError(f"`max_strata` must be at most 2**22, got {max_strata}.")
     fit_steps = check_count(fit_steps, "fit_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
+    passes = check_count(passes, "passes")
     is_grid = isinstance(proposal, Grid)
+    is_partition = isinstance(proposal, Partition)
+    if is_partition and n < 4 * proposal.max_cells:
+        raise ValueError(
+            "A Partition needs `n_per_iteration` >= 4 * max_cells (two points per cell "
+            f"and as many to spare) = {4 * proposal.max_cells}, got {n}."
+        )
     if stratify and not is_grid:
         raise ValueError(
             f"`stratify=True` needs a Grid proposal (VEGAS+), got {type(proposal).__name__}."
         )
 
-    if is_grid:
+    if is_grid or is_partition:
         params, static = eqx.partition(proposal, eqx.is_array)
     else:
         params, static = _split(proposal, None)
@@ -255,6 +273,9 @@ def adapt(
     if stratify:
         strata = _strata(proposal.dim, n, max_strata)  # at least two samples per cube
         sigma0 = jnp.ones((math.prod(strata),), proposal.lo.dtype)
+    elif is_partition:
+        # Each node's pooled (weight, variance, mean square); equal to start.
+        sigma0 = jnp.ones(proposal.logits.shape + (3,), proposal.lo.dtype).at[:, 0].set(0.0)
     else:
         sigma0 = jnp.zeros((1,), jnp.result_type(float))
 
@@ -303,6 +324,11 @@ def adapt(
             draw = next_draw(i + 1, sigma)
             table = prop._table()
             p, _ = eqx.partition(prop, eqx.is_array)
+        elif is_partition:
+            est, prop, draw = _stratified_round(
+                prop, draw, uniforms(i), f, n, beta, passes, batched
+            )
+            p, _ = eqx.partition(prop, eqx.is_array)
         else:
             x, px = prop.sample(jax.random.fold_in(key, i), n)
             fx = evaluate(f, x, batched)
@@ -313,6 +339,8 @@ def adapt(
 
     if is_grid:
         init = (params, next_draw(0, sigma0), proposal._table())
+    elif is_partition:
+        init = (params, sigma0, None)
     else:
         init = (params, jnp.zeros((), proposal.lo.dtype), None)
     (params, _, _), parts = jax.lax.scan(body, init, jnp.arange(iterations))
