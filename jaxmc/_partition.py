@@ -31,8 +31,8 @@ from ._checks import check_bounds, check_count, check_key
 from .proposals import AbstractProposal, _as_matrix, _from_matrix
 
 
-# Cells are dyadic: a cell's extent along an axis is 2^-level of the box's. Beyond
-# 2^-20 of the box a float32 point no longer resolves a cell's halves.
+# Cells are dyadic: a cell's extent along an axis is 2^-level of the box's. Capped at
+# 2^-20, so a float32 point (2^-24 resolution) still tells a cell's halves apart.
 _MAX_LEVEL = 20
 
 
@@ -43,9 +43,12 @@ class Partition(AbstractProposal):
     volume $V_c$, carries probability $P_c = \operatorname{softmax}(\text{logits})_c$
     (over the leaves), so $p(x) = P_{c(x)}/V_{c(x)}$. `logits` are the
     parameters `fit` optimises; the tree is grown by `jaxmc.fit.adapt`, which
-    samples the partition stratified (a fixed number of points in each leaf)
-    and splits, between rounds, the cells that contribute most to the
-    estimator's error (see the module docstring).
+    samples the partition stratified (a fixed number of points in each leaf),
+    splits, between rounds, the cells that contribute most to the estimator's
+    error (see the module docstring), and sets $P_c \propto V_c\,
+    \text{rms}_c(f)$ (the best importance density on these cells) mixed with
+    $V_c$ at weight 0.1, so `sample` and `pdf` are a defensive i.i.d. density
+    too.
 
     The tree lives in arrays of a fixed capacity, so a partition passes through
     `jit`, `vmap` and `lax.scan` while it grows: node $k$ is a leaf while

@@ -186,12 +186,15 @@ def adapt(
       Lepage 2021), $\sigma_h$ the previous round's standard deviation of $f/p$
       in hypercube $h$;
     - a `Partition` is always sampled stratified: each leaf (cell) gets two
-      points, a quarter of the rest in proportion to its volume $V_c$ and the
-      rest $\propto (V_c\sigma_c)^\beta$ (Neyman allocation at $\beta = 1$);
+      points, a quarter of the rest evenly and the rest
+      $\propto (V_c\sigma_c)^\beta$ ($V_c$ its volume, $\sigma_c$ the pooled
+      standard deviation of $f$ in it; Neyman allocation at $\beta = 1$);
       then `passes` times on the round's points, the leaves with the largest
-      $V_c\sigma_c$ are halved (as many as `max_cells` allows), and the cell
-      masses are set to $\propto V_c \sqrt{\overline{f^2}}$ (MISER-like
-      recursive stratified sampling, Press & Farrar 1990);
+      $V_c\sigma_c$ (and coarse leaves next to them) are halved along their
+      longest edge, as many as `max_cells` allows, and the cell masses are
+      set to $\propto V_c \sqrt{\overline{f^2}}$ (MISER-like recursive
+      stratified sampling, Press & Farrar 1990). Needs `n_per_iteration >=
+      4 * max_cells`;
     - any other proposal by `fit_steps` steps of `solver` (default BFGS) on the
       round's samples, reweighted from the frozen density they came from
       (`fit_on_samples`): no extra integrand evaluations.
@@ -325,6 +328,7 @@ def adapt(
             table = prop._table()
             p, _ = eqx.partition(prop, eqx.is_array)
         elif is_partition:
+            # `draw` carries the nodes' pooled statistics, which set the next allocation.
             est, prop, draw = _stratified_round(
                 prop, draw, uniforms(i), f, n, beta, passes, batched
             )
