@@ -14,12 +14,14 @@ case and method we measure, in steady state (compile time apart):
   time), projected the same way;
 - `|z|`: |estimate - I| / stderr of the adaptive run (a sanity check).
 
-Timings are wall-clock on a shared machine and noisy.
+Timings are wall-clock on a shared machine and noisy, so each is the median of
+`TIMED_REPEATS` runs (both libraries, same count).
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 import time
 from math import erf
 
@@ -41,6 +43,8 @@ PARTITION_MAX_D = 4  # a partition needs ~h^(1-d) cells at resolution h: low dim
 FLOW_STEPS_PER_BATCH = 8  # Adam steps on each evaluated batch (reweighted, forward KL)
 # |estimate - I| / stderr above which a run counts as biased (its variance is not trusted).
 MAX_Z = 5.0
+TIMED_REPEATS = 7  # timed runs after the compiling one; times are their median
+FLOW_TIMED_REPEATS = 2
 
 
 # ----------------------------------------------------------------------------
@@ -196,7 +200,7 @@ def _timed(fn, repeats):
         start = time.perf_counter()
         out = block(fn())
         times.append(time.perf_counter() - start)
-    return out, first, min(times)
+    return out, first, statistics.median(times)
 
 
 def _run_vegas(vegas, case, iterations, n, repeats):
@@ -209,7 +213,7 @@ def _run_vegas(vegas, case, iterations, n, repeats):
         start = time.perf_counter()
         result = integ(fb, nitn=iterations, neval=n)
         times.append(time.perf_counter() - start)
-    t = min(times)
+    t = statistics.median(times)
     last = result.itn_results[-1]
     n_last = result.sum_neval / iterations
     exact = case["exact"]
@@ -397,7 +401,9 @@ def run(ctx: Context) -> Result:
     quick = ctx.quick
     iterations = 10
     n = 5_000 if quick else 20_000
-    repeats = 1 if quick else 2
+    # Timed repeats (median): the Flow runner takes a minute a run, the others well under one.
+    repeats = 1 if quick else TIMED_REPEATS
+    flow_repeats = 1 if quick else FLOW_TIMED_REPEATS
     cases = _cases(quick)
     header = [
         "integrand",
@@ -426,7 +432,7 @@ def run(ctx: Context) -> Result:
             results["jaxmc Partition"] = _run_partition(case, iterations, n, repeats)
         if not case["separable"] or case["d"] >= 8:
             results["jaxmc GM"] = _run_gm(case, iterations, n, repeats)
-            results.update(_run_flow(case, iterations, n, repeats))
+            results.update(_run_flow(case, iterations, n, flow_repeats))
         t_ref = _time_to_tol(results["vegas"]) if "vegas" in results else None
         # A run whose estimate is off by > 5 stderr (e.g. a density locked onto one of
         # two peaks) has a meaningless variance: no ratio, and it is flagged.
@@ -466,18 +472,18 @@ def run(ctx: Context) -> Result:
         "VEGAS+ grid (4 rounds of the grid, 1 batch to seed, 5 rounds of `adapt` with 32 BFGS "
         "steps per round on the round's own samples); jaxmc `Partition` (d <= "
         f"{PARTITION_MAX_D}): `adapt` on a `Partition` of n/{PARTITION_SAMPLES_PER_CELL} cells, "
-        "stratified over its cells (MISER-like), first half of the iterations as warm-up. `rel_sd` is per sample, from the last "
-        "round; `t_1e-3` and `err@T` "
-        "are projections from the measured steady-state times (T = vegas's `t_1e-3`); "
-        "`var ratio` = (vegas rel_sd / method rel_sd)^2, i.e. variance per evaluation relative "
-        "to vegas (> 1 is better than vegas). Wall-clock times on a shared 2-core machine are "
-        "noisy. `biased`: |z| > 5 (or a zero variance), so the run's variance means nothing: "
-        "the density missed part of the integrand. `Flow+QMC`: a `Flow` trained by Adam on the "
+        "stratified over its cells (MISER-like), first half of the iterations as warm-up. "
+        "`rel_sd` is per sample, from the last round; `t_1e-3` and `err@T` are projections from "
+        "the measured steady-state times (T = vegas's `t_1e-3`); `var ratio` = (vegas rel_sd / "
+        "method rel_sd)^2, i.e. variance per evaluation relative to vegas (> 1 is better than "
+        f"vegas). Times are medians of {repeats} timed runs ({flow_repeats} for the flows; "
+        "jaxmc's after a compiling one); wall-clock times on a shared 2-core machine are noisy. "
+        "`biased`: |z| > 5 (or a zero variance), so the run's variance means nothing: the "
+        "density missed part of the integrand. `Flow+QMC`: a `Flow` trained by Adam on the "
         f"forward KL with 90% of the budget ({FLOW_STEPS_PER_BATCH} steps per evaluated batch), "
-        "then integrated by 8 scrambled Sobol' replicas in its "
-        "latent space (the flow's analogue of vegas's stratification); `Flow (iid)`: the same "
-        "flow sampled i.i.d.; their `t_1e-3` uses the run's time per evaluation, training "
-        "included."
+        "then integrated by 8 scrambled Sobol' replicas in its latent space (the flow's analogue "
+        "of vegas's stratification); `Flow (iid)`: the same flow sampled i.i.d.; their `t_1e-3` "
+        "uses the run's time per evaluation, training included."
     )
     if vegas is None:
         notes += " vegas was not installed: no comparison."
