@@ -11,6 +11,7 @@ import scipy.stats
 
 import jaxmc
 import jaxmc.fit
+from jaxmc._fit._fit import _default_solver
 from jaxmc._flow import Flow, _rqs_forward, _rqs_inverse
 
 
@@ -257,8 +258,8 @@ def _camel(alpha):
 
 
 def test_fit_camel_reduces_variance(key):
-    """Train the flow by minimising E_p[(f/p)^2] with Adam (OptaxMinimiser) on fresh
-    reparameterised samples each step; the variance per evaluation must drop >= 10x."""
+    """`fit`'s default for a flow: minimise E_p[(f/p)^2] with Adam (OptaxMinimiser) on
+    fresh reparameterised samples each step; the variance per evaluation must drop >= 10x."""
     f = _camel(0.1)
     lo, hi = jnp.zeros(2), jnp.ones(2)
     # A small flow and budget to keep the test quick (4 layers, 64 hidden units,
@@ -267,10 +268,8 @@ def test_fit_camel_reduces_variance(key):
     # The default initialisation is close to uniform.
     _, pdf0 = flow.sample(jax.random.key(4), 512)
     np.testing.assert_allclose(pdf0, 1.0, rtol=0.1)
-    solver = optx.OptaxMinimiser(optax.adam(3e-3), rtol=0.0, atol=0.0)
-    res = jaxmc.fit.fit(
-        jax.random.key(1), f, flow, 512, solver=solver, max_steps=150, resample=True
-    )
+    res = jaxmc.fit.fit(jax.random.key(1), f, flow, 512, max_steps=150)
+    assert int(res.steps) == 150
     fitted = res.proposal
     assert isinstance(fitted, Flow)
     np.testing.assert_array_equal(fitted.lo, lo)  # the box is not a parameter
@@ -287,3 +286,23 @@ def test_fit_camel_reduces_variance(key):
         assert int(est.n_nonfinite) == 0
     ratio = float(est_unif.variance / est_flow.variance)
     assert ratio >= 10.0, ratio
+
+
+def test_fit_default_solver_for_flows(key):
+    """A flow (alone or in a Mixture) defaults to Adam on fresh samples for exactly
+    `max_steps` steps; other proposals to BFGS on fixed samples."""
+    f = _camel(0.2)
+    lo, hi = jnp.zeros(2), jnp.ones(2)
+    flow = Flow(key, lo, hi, layers=2, hidden=8)
+    adam = optx.OptaxMinimiser(optax.adam(3e-3), rtol=0.0, atol=0.0)
+    fit = lambda prop, **kw: jaxmc.fit.fit(jax.random.key(1), f, prop, 128, max_steps=6, **kw)
+    default, explicit = fit(flow), fit(flow, solver=adam, resample=True)
+    assert default.losses.shape == (6,) and int(default.steps) == 6
+    np.testing.assert_array_equal(default.losses, explicit.losses)
+    mixed = jaxmc.proposals.Mixture((flow, jaxmc.proposals.Uniform(lo, hi)), jnp.array([0.9, 0.1]))
+    assert fit(mixed).losses.shape == (6,)
+    # One reused batch: no fresh samples, so no per-step losses.
+    assert fit(flow, reuse=True).losses is None
+    gm = jaxmc.proposals.GaussianMixture(jax.random.key(2), lo, hi, 2)
+    assert fit(gm).losses is None
+    assert isinstance(_default_solver(gm, gm), optx.BFGS)

@@ -195,7 +195,8 @@ def adapt(
       set to $\propto V_c \sqrt{\overline{f^2}}$ (MISER-like recursive
       stratified sampling, Press & Farrar 1990). Needs `n_per_iteration >=
       4 * max_cells`;
-    - any other proposal by `fit_steps` steps of `solver` (default BFGS) on the
+    - any other proposal by `fit_steps` steps of `solver` (default as for
+      `fit`: BFGS, L-BFGS above 2000 parameters, Adam for a `Flow`) on the
       round's samples, reweighted from the frozen density they came from
       (`fit_on_samples`): no extra integrand evaluations.
 
@@ -271,7 +272,7 @@ def adapt(
         params, static = eqx.partition(proposal, eqx.is_array)
     else:
         params, static = _split(proposal, None)
-        solver = _check_solver(solver, params)
+        solver = _check_solver(solver, proposal, params)
 
     if stratify:
         strata = _strata(proposal.dim, n, max_strata)  # at least two samples per cube

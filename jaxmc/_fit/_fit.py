@@ -16,10 +16,12 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optax
 import optimistix as optx
 
 from .. import _random
 from .._checks import check_callable, check_choice, check_count, check_key, evaluate
+from ..proposals import Flow
 
 
 OBJECTIVES = ("variance", "chi2", "kl", "reverse_kl")
@@ -155,16 +157,31 @@ def _defensive_draw(prop, key, n: int, n_def: int, eps: float):
 
 
 # Above this many parameters the default is L-BFGS: BFGS keeps a dense inverse Hessian
-# (a flow's ~10^4-10^5 parameters would need ~10^9-10^10 entries).
+# (~10^4 parameters would need ~10^8 entries).
 _DENSE_BFGS_MAX = 2000
+# Flows' default: Adam on fresh samples at every step (neural importance sampling).
+# Quasi-Newton steps on one fixed batch overfit a flow's thousands of parameters to it.
+_FLOW_LEARNING_RATE = 3e-3
 
 
-def _check_solver(solver, params=None):
+def _has_flow(proposal) -> bool:
+    """Whether `proposal` is, or contains (e.g. in a `Mixture`), a `Flow`."""
+    is_flow = lambda node: isinstance(node, Flow)
+    return any(is_flow(n) for n in jax.tree_util.tree_leaves(proposal, is_leaf=is_flow))
+
+
+def _default_solver(proposal, params):
+    if _has_flow(proposal):
+        return optx.OptaxMinimiser(optax.adam(_FLOW_LEARNING_RATE), rtol=0.0, atol=0.0)
+    size = sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
+    if size > _DENSE_BFGS_MAX:
+        return optx.LBFGS(rtol=1e-5, atol=1e-5)
+    return optx.BFGS(rtol=1e-5, atol=1e-5)
+
+
+def _check_solver(solver, proposal, params):
     if solver is None:
-        size = sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
-        if size > _DENSE_BFGS_MAX:
-            return optx.LBFGS(rtol=1e-5, atol=1e-5)
-        return optx.BFGS(rtol=1e-5, atol=1e-5)
+        return _default_solver(proposal, params)
     if not isinstance(solver, optx.AbstractMinimiser):
         raise TypeError(
             f"`solver` must be an optimistix.AbstractMinimiser (e.g. optimistix.BFGS), "
@@ -247,7 +264,7 @@ def fit(
     max_steps: int = 256,
     batched: bool = False,
     reuse: bool = False,
-    resample: bool = False,
+    resample: bool | None = None,
     steps_per_batch: int = 1,
     filter_spec: Any = None,
     defensive: float = 0.1,
@@ -290,15 +307,19 @@ def fit(
     - `n`: samples in the objective (static int).
     - `solver`: any `optimistix.AbstractMinimiser`; default
       `optimistix.BFGS(rtol=1e-5, atol=1e-5)` (`optimistix.LBFGS` above 2000
-      parameters, e.g. for a `Flow`). With stochastic solvers such as
-      `optimistix.OptaxMinimiser(optax.adam(1e-2), rtol=0, atol=0)` pass
-      `resample=True` to redraw the base samples at every step.
+      parameters). For a `Flow` (or a proposal containing one) the default is
+      stochastic, as in neural importance sampling: Adam,
+      `optimistix.OptaxMinimiser(optax.adam(3e-3), rtol=0, atol=0)`, run for
+      exactly `max_steps` steps on fresh samples (`resample` defaults to `True`).
+      With other stochastic solvers pass `resample=True` yourself.
     - `objective`: `"variance"` (default), `"chi2"`, `"kl"` or `"reverse_kl"`.
     - `max_steps`: solver step limit (with `resample=True`, the exact number).
     - `batched`: `f` takes a batch.
     - `reuse`: fit on one batch from the frozen initial proposal.
     - `resample`: run exactly `max_steps` solver steps on fresh base samples
-      (key folded with the batch index); for stochastic optimisers.
+      (key folded with the batch index); for stochastic optimisers. Default
+      `None`: `True` for a `Flow` with the default solver (unless `reuse`),
+      else `False`.
     - `steps_per_batch`: with `resample=True`, take this many solver steps on
       each batch before drawing the next (`max_steps` must be a multiple).
       For frozen samples (`"kl"`, or `reuse`) the batch is drawn from the
@@ -340,7 +361,11 @@ def fit(
     max_steps = check_count(max_steps, "max_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
     params, static = _split(proposal, filter_spec)
-    solver = _check_solver(solver, params)
+    if resample is None:
+        # The flows' default solver (Adam) is stochastic: fresh samples at every step
+        # (unless the caller asked to fit on one reused batch).
+        resample = solver is None and _has_flow(proposal) and not reuse
+    solver = _check_solver(solver, proposal, params)
 
     steps_per_batch = check_count(steps_per_batch, "steps_per_batch")
     if max_steps % steps_per_batch:
@@ -455,7 +480,7 @@ def fit_on_samples(
     if w.shape != (n,):
         raise ValueError(f"`weights` must have shape ({n},), got {w.shape}.")
     params, static = _split(proposal, filter_spec)
-    solver = _check_solver(solver, params)
+    solver = _check_solver(solver, proposal, params)
     args = (x, _log_abs(fx), log_q, w)
 
     def loss(p, args):
