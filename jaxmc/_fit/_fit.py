@@ -159,8 +159,8 @@ def _defensive_draw(prop, key, n: int, n_def: int, eps: float):
 # Above this many parameters the default is L-BFGS: BFGS keeps a dense inverse Hessian
 # (~10^4 parameters would need ~10^8 entries).
 _DENSE_BFGS_MAX = 2000
-# Flows' default: Adam on fresh samples at every step (neural importance sampling).
-# Quasi-Newton steps on one fixed batch overfit a flow's thousands of parameters to it.
+# Flows' default, as in neural importance sampling (Müller et al. 2019): Adam on fresh
+# samples at every step, for a fixed number of steps.
 _FLOW_LEARNING_RATE = 3e-3
 
 
