@@ -345,6 +345,11 @@ def fit(
     **Returns:** a `FitResult`. Solver failures (e.g. `max_steps` reached) are
     reported in `result`, not raised.
 
+    `fit` traces and compiles on every call (seconds for a `Flow`). To fit
+    repeatedly, for new keys or starting proposals, jit it once:
+    `eqx.filter_jit(lambda k, p: fit(k, f, p, n))` compiles on the first call
+    only (milliseconds afterwards for a small flow).
+
     !!! Example
 
         ```python
