@@ -366,11 +366,12 @@ def fit(
     max_steps = check_count(max_steps, "max_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
     params, static = _split(proposal, filter_spec)
-    if resample is None:
-        # The flows' default solver (Adam) is stochastic: fresh samples at every step
-        # (unless the caller asked to fit on one reused batch).
-        resample = solver is None and _has_flow(proposal) and not reuse
+    default_solver = solver is None
     solver = _check_solver(solver, proposal, params)
+    if resample is None:
+        # A stochastic default (the flows' Adam) gets fresh samples at every step, unless
+        # the caller asked to fit on one reused batch.
+        resample = default_solver and isinstance(solver, optx.OptaxMinimiser) and not reuse
 
     steps_per_batch = check_count(steps_per_batch, "steps_per_batch")
     if max_steps % steps_per_batch:
