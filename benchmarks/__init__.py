@@ -1,7 +1,9 @@
 """jaxmc's benchmark suites, run with `python -m benchmarks`.
 
 Each suite is a module here with `TITLE` and `run(ctx: Context) -> Result`;
-`SUITES` lists them in running order.
+`SUITES` lists them in running order. The suites share `_harness` (context,
+results, the timer `time_call`) and `problems` (the integrands, each written once
+for `jax.numpy` and `numpy`).
 """
 
 SUITES = ("throughput", "points", "convergence", "adaptive", "render")

@@ -14,13 +14,12 @@ import json
 import platform
 import re
 import sys
-import time
 from pathlib import Path
 
 import jax
 
 from . import SUITES
-from ._harness import Context
+from ._harness import Context, time_call
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,16 +60,15 @@ def main(argv: list[str] | None = None) -> int:
             raise
         title = getattr(module, "TITLE", name)
         print(f"[{name}] {title}", file=sys.stderr, flush=True)
-        start = time.perf_counter()
         try:
-            result = module.run(ctx)
+            timing = time_call(lambda: module.run(ctx), repeats=0)
         except Exception as error:  # one broken suite should not hide the others' results
             failures += 1
             print(f"[{name}] FAILED: {error!r}", file=sys.stderr, flush=True)
             section = args.out / f"{name}{suffix}.md"
             section.write_text(f"## {title}\n\nFAILED: `{error!r}`\n")
             continue
-        elapsed = time.perf_counter() - start
+        result, elapsed = timing.output, timing.first_s
         print(f"[{name}] done in {elapsed:.1f} s", file=sys.stderr, flush=True)
         payload = {"suite": name, "environment": environment, "seconds": elapsed, **result.data}
         (args.out / f"{name}{suffix}.json").write_text(json.dumps(payload, indent=2, default=float))

@@ -1,8 +1,9 @@
-"""Shared pieces of the benchmark suites: context, results and timing."""
+"""Shared pieces of the benchmark suites: context, results, the timer and tables."""
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import statistics
 import sys
 import time
@@ -33,25 +34,52 @@ class Result:
     plots: list[str] = dataclasses.field(default_factory=list)
 
 
-def block(x: Any) -> Any:
-    return jax.block_until_ready(x)
+@dataclasses.dataclass(frozen=True)
+class Timing:
+    """Wall-clock seconds of the calls `time_call` made, the first one included.
 
-
-def time_call(fn: Callable[[], Any], *, repeats: int = 5) -> dict[str, float]:
-    """Time `fn()`: the first call (compile + run) apart from the steady state.
-
-    Returns `first_s` and `median_s`/`min_s` over `repeats` further calls, each
-    ended with `block_until_ready`.
+    The first call of a jitted function compiles, so it is kept apart: `median_s`
+    and `min_s` are over the further calls (over the first when there were none).
     """
-    start = time.perf_counter()
-    block(fn())
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
+
+    seconds: tuple[float, ...]
+    output: Any = dataclasses.field(repr=False)  # what the last call returned
+
+    @property
+    def first_s(self) -> float:
+        return self.seconds[0]
+
+    @property
+    def steady(self) -> tuple[float, ...]:
+        return self.seconds[1:] or self.seconds
+
+    @property
+    def median_s(self) -> float:
+        return statistics.median(self.steady)
+
+    @property
+    def min_s(self) -> float:
+        return min(self.steady)
+
+    def summary(self) -> dict[str, float]:
+        """`first_s`, `median_s` and `min_s`, for a suite's JSON."""
+        return {"first_s": self.first_s, "median_s": self.median_s, "min_s": self.min_s}
+
+
+def time_call(fn: Callable[[], Any], *, repeats: int = 5) -> Timing:
+    """Time `fn()` once, then `repeats` more times, each call ended with `block_until_ready`.
+
+    The benchmarks' only timer. To time calls on different inputs (new keys, new
+    seeds), let `fn` take the next one from an iterator.
+    """
+    seconds: list[float] = []
+    output: Any = None
+    for _ in range(1 + repeats):
+        output = None  # let the previous output go before the next call
         start = time.perf_counter()
-        block(fn())
-        times.append(time.perf_counter() - start)
-    return {"first_s": first, "median_s": statistics.median(times), "min_s": min(times)}
+        output = jax.block_until_ready(fn())
+        seconds.append(time.perf_counter() - start)
+    return Timing(tuple(seconds), output)
 
 
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
@@ -66,8 +94,8 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
 
 
 def optional_import(name: str) -> Any | None:
-    """Import a competitor from the `bench` extra, or None if it is missing."""
+    """Import a (sub)module from the `bench` extra, e.g. `scipy.stats.qmc`, or None if missing."""
     try:
-        return __import__(name)
+        return importlib.import_module(name)
     except ImportError:
         return None

@@ -1,7 +1,7 @@
 """Adaptive integration: jaxmc's fitted densities against vegas 6.x, side by side.
 
 Same integrands, same evaluation budgets, closed-form reference values. For each
-case and method we measure, in steady state (compile time apart):
+problem and method we measure, in steady state (compile time apart):
 
 - `rel_sd`: per-sample relative standard deviation after adaptation,
   $\\sqrt{n \\cdot \\mathrm{Var}}/I$ of the last adaptive iteration (vegas: its last
@@ -22,21 +22,20 @@ from __future__ import annotations
 
 import math
 import statistics
-import time
-from math import erf
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ._harness import Context, Result, block, markdown_table, optional_import
+from . import problems
+from ._harness import Context, Result, markdown_table, optional_import, time_call
+from .problems import Problem
 
 
 TITLE = "Adaptive integration against vegas"
 
 TOL = 1e-3
 GRID_BINS = 256  # per axis (vegas: up to 1000; 256 measured best for jaxmc's rule here)
-GM_COMPONENTS = 8  # for every case: no knowledge of the number of modes
+GM_COMPONENTS = 8  # for every problem: no knowledge of the number of modes
 # Capacity of a Partition: one cell per this many evaluations of a round (at least 4).
 PARTITION_SAMPLES_PER_CELL = 5
 PARTITION_MAX_D = 4  # a partition needs ~h^(1-d) cells at resolution h: low dimensions only
@@ -47,176 +46,47 @@ TIMED_REPEATS = 7  # timed runs after the compiling one; times are their median
 FLOW_TIMED_REPEATS = 2
 
 
-# ----------------------------------------------------------------------------
-# Integrands: (name, d, bounds, jax f for one point, numpy f for a batch, exact, separable)
-
-
-def _gauss_box_integral(a, c, lo, hi):
-    """∫_lo^hi exp(-a (x - c)^2) dx."""
-    s = math.sqrt(a)
-    return math.sqrt(math.pi / a) / 2 * (erf(s * (hi - c)) - erf(s * (lo - c)))
-
-
-def _cases(quick: bool):
-    cases = []
-
-    # vegas's narrow Gaussian, 4-D on [-1,1]x[0,1]^3, I = 1 (vegas tutorial).
-    norm = 1013.2118364296088
-    cases.append(
-        dict(
-            name="vegas narrow Gaussian",
-            d=4,
-            lo=[-1.0, 0, 0, 0],
-            hi=[1.0, 1, 1, 1],
-            f=lambda x: jnp.exp(-100.0 * jnp.sum((x - 0.5) ** 2)) * norm,
-            fn=lambda x: np.exp(-100.0 * np.sum((x - 0.5) ** 2, axis=1)) * norm,
-            exact=1.0,
-            separable=True,
-        )
-    )
-
-    # Gaussians exp(-100 |x - c|^2) on the diagonal of [0,1]^d, normalised to I = 1.
-    def diagonal(name, d, centres):
-        per = [_gauss_box_integral(100.0, c, 0.0, 1.0) ** d for c in centres]
-        scale = 1.0 / sum(per)
-        cs = np.asarray(centres)
-        return dict(
-            name=name,
-            d=d,
-            lo=[0.0] * d,
-            hi=[1.0] * d,
-            f=lambda x: (
-                scale * jnp.sum(jnp.exp(-100.0 * jnp.sum((x[None, :] - cs[:, None]) ** 2, axis=1)))
-            ),
-            fn=lambda x: (
-                scale
-                * np.sum(
-                    np.exp(-100.0 * np.sum((x[:, None, :] - cs[None, :, None]) ** 2, axis=2)), 1
-                )
-            ),
-            exact=1.0,
-            separable=False,
-        )
-
-    cases.append(diagonal("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]))
-    if not quick:
-        cases.append(diagonal("three Gaussians (0.23, 0.39, 0.74)", 6, [0.23, 0.39, 0.74]))
-
-    # vegas's ridge of 1000 Gaussians (examples/ridge.py), I = 0.999941839456619.
-    x0 = np.linspace(0.4, 0.6, 1000)
-    rnorm = (100.0 / np.pi) ** 2
-    cases.append(
-        dict(
-            name="ridge of 1000 Gaussians",
-            d=4,
-            lo=[0.0] * 4,
-            hi=[1.0] * 4,
-            f=lambda x: jnp.mean(jnp.exp(-100.0 * jnp.sum((x[:, None] - x0) ** 2, axis=0))) * rnorm,
-            fn=lambda x: (
-                np.mean(np.exp(-100.0 * np.sum((x[:, :, None] - x0) ** 2, axis=1)), 1) * rnorm
-            ),
-            exact=0.999941839456619,
-            separable=False,
-        )
-    )
-
-    # i-flow (Gao, Isaacson, Krause 2020): Gaussian, camel (alpha = 0.2), annulus.
-    alpha = 0.2
+def _problems(quick: bool) -> list[Problem]:
     dims = (4,) if quick else (2, 4, 8, 16)
-    for d in dims:
-        pre = (1.0 / (alpha * math.sqrt(math.pi))) ** d
-        cases.append(
-            dict(
-                name=f"i-flow Gaussian d={d}",
-                d=d,
-                lo=[0.0] * d,
-                hi=[1.0] * d,
-                f=lambda x, pre=pre: pre * jnp.exp(-jnp.sum((x - 0.5) ** 2) / alpha**2),
-                fn=lambda x, pre=pre: pre * np.exp(-np.sum((x - 0.5) ** 2, axis=1) / alpha**2),
-                exact=erf(1 / (2 * alpha)) ** d,
-                separable=True,
-            )
-        )
-    for d in (4,) if quick else (2, 4, 8, 16):
-        pre = (1.0 / (alpha * math.sqrt(math.pi))) ** d
-        cases.append(
-            dict(
-                name=f"i-flow camel d={d}",
-                d=d,
-                lo=[0.0] * d,
-                hi=[1.0] * d,
-                f=lambda x, pre=pre: (
-                    0.5
-                    * pre
-                    * (
-                        jnp.exp(-jnp.sum((x - 1 / 3) ** 2) / alpha**2)
-                        + jnp.exp(-jnp.sum((x - 2 / 3) ** 2) / alpha**2)
-                    )
-                ),
-                fn=lambda x, pre=pre: (
-                    0.5
-                    * pre
-                    * (
-                        np.exp(-np.sum((x - 1 / 3) ** 2, axis=1) / alpha**2)
-                        + np.exp(-np.sum((x - 2 / 3) ** 2, axis=1) / alpha**2)
-                    )
-                ),
-                exact=(0.5 * (erf(1 / (3 * alpha)) + erf(2 / (3 * alpha)))) ** d,
-                separable=False,
-            )
-        )
-    r1, r2 = 0.2, 0.45
-    cases.append(
-        dict(
-            name="i-flow annulus d=2",
-            d=2,
-            lo=[0.0] * 2,
-            hi=[1.0] * 2,
-            f=lambda x: jnp.where(
-                (jnp.sum((x - 0.5) ** 2) >= r1**2) & (jnp.sum((x - 0.5) ** 2) <= r2**2), 1.0, 0.0
-            ),
-            fn=lambda x: np.where(
-                (np.sum((x - 0.5) ** 2, 1) >= r1**2) & (np.sum((x - 0.5) ** 2, 1) <= r2**2),
-                1.0,
-                0.0,
-            ),
-            exact=math.pi * (r2**2 - r1**2),
-            separable=False,
-        )
-    )
-    return cases
+    return [
+        problems.vegas_narrow_gaussian(),
+        problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
+        *(
+            []
+            if quick
+            else [problems.diagonal_gaussians("three Gaussians (0.23, 0.39, 0.74)", 6,
+                                              [0.23, 0.39, 0.74])]
+        ),
+        problems.vegas_ridge(),
+        *(problems.iflow_gaussian(d) for d in dims),
+        *(problems.iflow_camel(d) for d in dims),
+        problems.iflow_annulus(),
+    ]
 
 
 # ----------------------------------------------------------------------------
 # Runners. Each returns a dict with rel_sd, t_adapt, t_per_sample, compile, z, evals.
 
 
-def _timed(fn, repeats):
-    start = time.perf_counter()
-    out = block(fn())
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out = block(fn())
-        times.append(time.perf_counter() - start)
-    return out, first, statistics.median(times)
+def _run_vegas(vegas, problem, iterations, n, repeats):
+    """`repeats` runs of vegas (at least one), seeded 0, 1, ...; the last one's result counts."""
+    import gvar  # vegas's dependency; vegas >= 6 draws from `gvar.RNG`, not `np.random`
 
+    fb = vegas.lbatchintegrand(problem.numpy_f)
+    bounds = list(zip(problem.lo, problem.hi))
+    seeds = iter(range(max(repeats, 1)))
 
-def _run_vegas(vegas, case, iterations, n, repeats):
-    fb = vegas.lbatchintegrand(case["fn"])
-    bounds = list(zip(case["lo"], case["hi"]))
-    times, result = [], None
-    for seed in range(max(repeats, 1)):
-        np.random.seed(seed)
-        integ = vegas.Integrator(bounds)
-        start = time.perf_counter()
-        result = integ(fb, nitn=iterations, neval=n)
-        times.append(time.perf_counter() - start)
-    t = statistics.median(times)
+    def one_run():
+        gvar.ranseed(next(seeds))
+        return vegas.Integrator(bounds)(fb, nitn=iterations, neval=n)
+
+    # vegas does not compile: every run counts, the first included.
+    timing = time_call(one_run, repeats=max(repeats, 1) - 1)
+    t = statistics.median(timing.seconds)
+    result = timing.output
     last = result.itn_results[-1]
     n_last = result.sum_neval / iterations
-    exact = case["exact"]
+    exact = problem.exact
     return dict(
         rel_sd=float(last.sdev * math.sqrt(n_last) / exact),
         t_adapt=t,
@@ -228,9 +98,9 @@ def _run_vegas(vegas, case, iterations, n, repeats):
     )
 
 
-def _measured(est, variance, n_var, case, t, first, evals, q=float("nan")):
+def _measured(est, variance, n_var, problem, t, first, evals, q=float("nan")):
     """The runners' common record: `variance` of the mean of `n_var` evaluations."""
-    exact = case["exact"]
+    exact = problem.exact
     return dict(
         rel_sd=math.sqrt(variance * n_var) / exact,
         t_adapt=t,
@@ -242,34 +112,37 @@ def _measured(est, variance, n_var, case, t, first, evals, q=float("nan")):
     )
 
 
-def _run_timed(case, run, n, repeats, evals):
+def _run_timed(problem, run, n, repeats, evals):
     """Time the jitted `run(key) -> Combined`; `rel_sd` from its last round of `n` evaluations."""
-    est, first, t = _timed(lambda: run(jax.random.key(0)), repeats)
+    timing = time_call(lambda: run(jax.random.key(0)), repeats=repeats)
+    est = timing.output
     variance = float(est.parts.variance[-1])
-    return _measured(est, variance, n, case, t, first, evals, float(est.q))
+    return _measured(
+        est, variance, n, problem, timing.median_s, timing.first_s, evals, float(est.q)
+    )
 
 
-def _run_grid(case, iterations, n, repeats, bins=GRID_BINS):
+def _run_grid(problem, iterations, n, repeats, bins=GRID_BINS):
     """VEGAS+: a `Grid` with adaptive stratification, first half of the iterations as warm-up."""
     from jaxmc.fit import adapt
     from jaxmc.proposals import Grid
 
-    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
+    lo, hi = jnp.asarray(problem.lo), jnp.asarray(problem.hi)
 
     @jax.jit
     def run(key):
         grid = Grid(lo, hi, bins)
         warm = max(1, iterations // 2)
         est, _ = adapt(
-            key, case["f"], grid, iterations=iterations, n_per_iteration=n, warmup=warm,
+            key, problem.jax_f, grid, iterations=iterations, n_per_iteration=n, warmup=warm,
             stratify=True,
         )
         return est
 
-    return _run_timed(case, run, n, repeats, iterations * n)
+    return _run_timed(problem, run, n, repeats, iterations * n)
 
 
-def _run_partition(case, iterations, n, repeats):
+def _run_partition(problem, iterations, n, repeats):
     """MISER-like stratified sampling on a `Partition` of `n // PARTITION_SAMPLES_PER_CELL` cells.
 
     The first half of the iterations are warm-up, as for `Grid+`.
@@ -277,21 +150,21 @@ def _run_partition(case, iterations, n, repeats):
     from jaxmc.fit import adapt
     from jaxmc.proposals import Partition
 
-    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
+    lo, hi = jnp.asarray(problem.lo), jnp.asarray(problem.hi)
     cells = n // PARTITION_SAMPLES_PER_CELL
 
     @jax.jit
     def run(key):
         est, _ = adapt(
-            key, case["f"], Partition(lo, hi, cells), iterations=iterations, n_per_iteration=n,
+            key, problem.jax_f, Partition(lo, hi, cells), iterations=iterations, n_per_iteration=n,
             warmup=max(1, iterations // 2),
         )
         return est
 
-    return _run_timed(case, run, n, repeats, iterations * n)
+    return _run_timed(problem, run, n, repeats, iterations * n)
 
 
-def _run_gm(case, iterations, n, repeats, components=GM_COMPONENTS):
+def _run_gm(problem, iterations, n, repeats, components=GM_COMPONENTS):
     """A GaussianMixture started from a VEGAS+ grid's importance-weighted samples.
 
     Budget split (10 iterations): 4 rounds of VEGAS+ on a `Grid`, one batch of
@@ -303,7 +176,7 @@ def _run_gm(case, iterations, n, repeats, components=GM_COMPONENTS):
     from jaxmc.fit import adapt
     from jaxmc.proposals import GaussianMixture, Grid
 
-    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
+    lo, hi = jnp.asarray(problem.lo), jnp.asarray(problem.hi)
     grid_rounds = max(1, 2 * iterations // 5)
     gm_rounds = iterations - grid_rounds - 1
     if gm_rounds < 2:
@@ -313,21 +186,22 @@ def _run_gm(case, iterations, n, repeats, components=GM_COMPONENTS):
     def run(key):
         k_grid, k_seed, k_gm = jax.random.split(key, 3)
         _, grid = adapt(
-            k_grid, case["f"], Grid(lo, hi, GRID_BINS), iterations=grid_rounds,
+            k_grid, problem.jax_f, Grid(lo, hi, GRID_BINS), iterations=grid_rounds,
             n_per_iteration=n, stratify=True,
         )
         x, p = grid.sample(k_seed, n)
-        gm = GaussianMixture.from_samples(x, jnp.abs(jax.vmap(case["f"])(x)) / p, lo, hi, components)
+        weights = jnp.abs(jax.vmap(problem.jax_f)(x)) / p
+        gm = GaussianMixture.from_samples(x, weights, lo, hi, components)
         est, _ = adapt(
-            k_gm, case["f"], gm, iterations=gm_rounds, n_per_iteration=n, warmup=gm_rounds // 2
+            k_gm, problem.jax_f, gm, iterations=gm_rounds, n_per_iteration=n, warmup=gm_rounds // 2
         )
         return est
 
-    return _run_timed(case, run, n, repeats, iterations * n)
+    return _run_timed(problem, run, n, repeats, iterations * n)
 
 
-def _run_flow(case, iterations, n, repeats, replicas=8):
-    """A `Flow` trained by Adam on the forward KL, then integrated by scrambled Sobol' in its latent space.
+def _run_flow(problem, iterations, n, repeats, replicas=8):
+    r"""A `Flow` trained by Adam on the forward KL, then integrated by scrambled Sobol' in latent space.
 
     Budget: `(iterations - 1) * n` evaluations for training, in batches of
     `n / 10` each reused (reweighted) for `FLOW_STEPS_PER_BATCH` Adam steps, a
@@ -343,8 +217,8 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
     import jaxmc
     from jaxmc.proposals import Flow
 
-    lo, hi = jnp.asarray(case["lo"]), jnp.asarray(case["hi"])
-    d = case["d"]
+    lo, hi = jnp.asarray(problem.lo), jnp.asarray(problem.hi)
+    d = problem.d
     batch = max(256, n // 10)
     steps = (iterations - 1) * n // batch * FLOW_STEPS_PER_BATCH
     m = 2 ** int(math.log2(n // replicas))
@@ -357,7 +231,7 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
         k_init, k_fit, k_qmc, k_iid = jax.random.split(key, 4)
         fitted = jaxmc.fit.fit(
             k_fit,
-            case["f"],
+            problem.jax_f,
             Flow(k_init, lo, hi),
             batch,
             solver=solver,
@@ -369,18 +243,20 @@ def _run_flow(case, iterations, n, repeats, replicas=8):
 
         def weight(u):
             x, log_p = fitted.forward(u)
-            return case["f"](x) * jnp.exp(-log_p)
+            return problem.jax_f(x) * jnp.exp(-log_p)
 
         zeros, ones = jnp.zeros(d), jnp.ones(d)
         qmc = jaxmc.randomized_qmc(k_qmc, weight, zeros, ones, m, replicas=replicas)
-        iid = jaxmc.importance(k_iid, case["f"], fitted, m * replicas)
+        iid = jaxmc.importance(k_iid, problem.jax_f, fitted, m * replicas)
         return qmc, iid
 
-    (qmc, iid), first, t = _timed(lambda: run(jax.random.key(0)), repeats)
+    timing = time_call(lambda: run(jax.random.key(0)), repeats=repeats)
+    qmc, iid = timing.output
+    t, first = timing.median_s, timing.first_s
     n_final = m * replicas
     evals = steps // FLOW_STEPS_PER_BATCH * batch + n_final
     return {
-        label: _measured(est, float(est.variance), n_final, case, t, first, evals)
+        label: _measured(est, float(est.variance), n_final, problem, t, first, evals)
         for label, est in (("jaxmc Flow+QMC", qmc), ("jaxmc Flow (iid)", iid))
     }
 
@@ -404,7 +280,6 @@ def run(ctx: Context) -> Result:
     # Timed repeats (median): the Flow runner takes a minute a run, the others well under one.
     repeats = 1 if quick else TIMED_REPEATS
     flow_repeats = 1 if quick else FLOW_TIMED_REPEATS
-    cases = _cases(quick)
     header = [
         "integrand",
         "d",
@@ -422,17 +297,17 @@ def run(ctx: Context) -> Result:
     rows, data = [], {"n_per_iteration": n, "iterations": iterations, "cases": {}}
     if vegas is None:
         ctx.log("vegas not installed (pip install vegas): comparison skipped, jaxmc only")
-    for case in cases:
-        ctx.log(f"{case['name']} (d={case['d']})")
+    for problem in _problems(quick):
+        ctx.log(f"{problem.name} (d={problem.d})")
         results = {}
         if vegas is not None:
-            results["vegas"] = _run_vegas(vegas, case, iterations, n, repeats)
-        results["jaxmc Grid+"] = _run_grid(case, iterations, n, repeats)
-        if case["d"] <= PARTITION_MAX_D:
-            results["jaxmc Partition"] = _run_partition(case, iterations, n, repeats)
-        if not case["separable"] or case["d"] >= 8:
-            results["jaxmc GM"] = _run_gm(case, iterations, n, repeats)
-            results.update(_run_flow(case, iterations, n, flow_repeats))
+            results["vegas"] = _run_vegas(vegas, problem, iterations, n, repeats)
+        results["jaxmc Grid+"] = _run_grid(problem, iterations, n, repeats)
+        if problem.d <= PARTITION_MAX_D:
+            results["jaxmc Partition"] = _run_partition(problem, iterations, n, repeats)
+        if not problem.separable or problem.d >= 8:
+            results["jaxmc GM"] = _run_gm(problem, iterations, n, repeats)
+            results.update(_run_flow(problem, iterations, n, flow_repeats))
         t_ref = _time_to_tol(results["vegas"]) if "vegas" in results else None
         # A run whose estimate is off by > 5 stderr (e.g. a density locked onto one of
         # two peaks) has a meaningless variance: no ratio, and it is flagged.
@@ -449,8 +324,8 @@ def run(ctx: Context) -> Result:
             r["var_ratio_vs_vegas"] = ratio
             rows.append(
                 [
-                    case["name"],
-                    case["d"],
+                    problem.name,
+                    problem.d,
                     method,
                     r["evals"],
                     r["rel_sd"],
@@ -463,7 +338,7 @@ def run(ctx: Context) -> Result:
                     "biased" if r["biased"] else ratio,
                 ]
             )
-        data["cases"][case["name"]] = results
+        data["cases"][problem.name] = results
     notes = (
         f"\n\n{iterations} iterations of up to {n} evaluations each (vegas: `neval={n}`; jaxmc "
         f"`Grid+`: `adapt(..., stratify=True)`, {GRID_BINS} bins per axis, first half of the "

@@ -30,11 +30,8 @@ Everything runs in float64 (`jax.enable_x64`), as SciPy does, so errors down to
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
 import math
 import statistics
-import time
 from collections.abc import Callable
 
 import equinox as eqx
@@ -43,101 +40,23 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmc import points
-from jaxmc._estimators._basic import importance, uniform
-from jaxmc._estimators._mis import mis, mis_one_sample
-from jaxmc._estimators._qmc import randomized_qmc
-from jaxmc._estimators._stratified import stratified
+from jaxmc.estimators import importance, mis, mis_one_sample, randomized_qmc, stratified, uniform
 
-from ._harness import Context, Result, markdown_table
-
-
-def optional_import(name: str):
-    """Import a (sub)module from the `bench` extra, or None if it is missing."""
-    try:
-        return importlib.import_module(name)
-    except ImportError:
-        return None
+from . import problems
+from ._harness import Context, Result, markdown_table, optional_import, time_call
+from .problems import Problem
 
 
 TITLE = "Convergence: randomised QMC, stratification and MIS vs plain MC and scipy.integrate.qmc_quad"
 
 
-@dataclasses.dataclass
-class Problem:
-    name: str
-    d: int
-    f: Callable  # batched, x of shape (n, d) -> (n,); jax.numpy or numpy via `xp`
-    exact: float
-
-    def jax_f(self, x):
-        return self.f(x, jnp)
-
-    def numpy_f(self, x):
-        # qmc_quad passes x of shape (d, n)
-        return self.f(x.T, np)
-
-
-def _genz_oscillatory(d: int) -> Problem:
-    a = np.full(d, 9.0 / d)
-    u1 = 0.3
-    exact = (np.exp(2j * np.pi * u1) * np.prod((np.exp(1j * a) - 1) / (1j * a))).real
-
-    def f(x, xp):
-        return xp.cos(2 * np.pi * u1 + x @ xp.asarray(a))
-
-    return Problem(f"genz_oscillatory_d{d}", d, f, float(exact))
-
-
-def _genz_gaussian(d: int) -> Problem:
-    from scipy.special import erf
-
-    a = np.full(d, 7.25 / d)
-    u = 0.3 + 0.4 * ((np.arange(d) * 0.6180339887) % 1.0)
-    exact = np.prod(np.sqrt(np.pi) / (2 * a) * (erf(a * (1 - u)) + erf(a * u)))
-
-    def f(x, xp):
-        return xp.exp(-xp.sum((xp.asarray(a) * (x - xp.asarray(u))) ** 2, axis=-1))
-
-    return Problem(f"genz_gaussian_d{d}", d, f, float(exact))
-
-
-def _keister(d: int) -> Problem:
-    from scipy import integrate, special
-
-    radial = integrate.quad(lambda r: np.cos(r) * np.exp(-r * r) * r ** (d - 1), 0, np.inf,
-                            epsabs=1e-15, epsrel=1e-13, limit=200)[0]
-    exact = 2 * np.pi ** (d / 2) / special.gamma(d / 2) * radial
-
-    def f(x, xp):
-        # Clip to (0, 1) so a point exactly at 0 maps to a finite normal quantile.
-        x = xp.clip(x, 2.0**-60, 1 - 2.0**-53)
-        if xp is np:
-            z = special.ndtri(x) / np.sqrt(2)
-        else:
-            z = jax.scipy.special.ndtri(x) / np.sqrt(2)
-        return np.pi ** (d / 2) * xp.cos(xp.sqrt(xp.sum(z * z, axis=-1)))
-
-    return Problem(f"keister_d{d}", d, f, float(exact))
-
-
-def _scipy_normal(d: int = 8) -> Problem:
-    from scipy.special import ndtr
-
-    exact = (ndtr(1.0) - 0.5) ** d
-
-    def f(x, xp):
-        return (2 * np.pi) ** (-d / 2) * xp.exp(-0.5 * xp.sum(x * x, axis=-1))
-
-    return Problem(f"scipy_normal_d{d}", d, f, float(exact))
-
-
-def problems() -> list[Problem]:
+def _problems() -> list[Problem]:
     return [
-        *(_genz_oscillatory(d) for d in (2, 4, 8)),
-        *(_genz_gaussian(d) for d in (2, 4, 8)),
-        _keister(4),
-        _keister(8),
-        _scipy_normal(8),
+        *(problems.genz_oscillatory(d) for d in (2, 4, 8)),
+        *(problems.genz_gaussian(d) for d in (2, 4, 8)),
+        problems.keister(4),
+        problems.keister(8),
+        problems.scipy_normal(8),
     ]
 
 
@@ -207,31 +126,17 @@ def _mis_table(reps: int, n: int) -> tuple[list[list], dict]:
     return rows, data
 
 
-def _time(fn: Callable, repeats: int) -> tuple[float, float]:
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - start
-    times = [first]
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return first, statistics.median(times[1:] or times)
-
-
 def _efficiency(problem: Problem, n: int, reps: int, scipy_integrate, scipy_qmc, seed: int) -> dict:
-    """Time (fastest of `timing` calls) and error² (over `reps` calls) of both methods."""
-    timing = min(reps, 32)
+    """Time (fastest of `timed_calls` calls) and error² (over `reps` calls) of both methods."""
+    timed_calls = min(reps, 32)
     lo, hi = jnp.zeros(problem.d), jnp.ones(problem.d)
     one = lambda k: randomized_qmc(k, problem.jax_f, lo, hi, n, replicas=8, batched=True)
     call = jax.jit(one)
     keys = jax.random.split(jax.random.key(seed), reps)
-    compile_s, _ = _time(lambda: call(keys[0]), 0)
-    times = []
-    for k in keys[:timing]:
-        start = time.perf_counter()
-        jax.block_until_ready(call(k))
-        times.append(time.perf_counter() - start)
+    # The first call compiles; then `timed_calls` calls on new keys (the first key again first).
+    calls = iter([keys[0], *keys[:timed_calls]])
+    jax_timing = time_call(lambda: call(next(calls)), repeats=timed_calls)
+    compile_s = jax_timing.first_s
     # Error² over all `reps` calls (the same estimator, vmapped over batches of keys with
     # about 2^22 points per batch, so memory stays bounded).
     many = jax.jit(jax.vmap(one))
@@ -239,22 +144,27 @@ def _efficiency(problem: Problem, n: int, reps: int, scipy_integrate, scipy_qmc,
     parts = [many(keys[i : i + batch]) for i in range(0, reps, batch)]
     est = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *parts)
     # The minimum over calls: the machine may be shared, and noise only adds time.
-    jax_t, jax_var = min(times), float(np.mean(est.variance))
+    jax_t, jax_var = jax_timing.min_s, float(np.mean(est.variance))
     out = {"n_points": n, "n_estimates": 8, "calls": reps, "jaxmc_compile_s": compile_s,
            "jaxmc_s": jax_t, "jaxmc_mse": float(np.mean((est.mean - problem.exact) ** 2)),
            "jaxmc_var": jax_var}
     if scipy_integrate is None:
         return out
-    times, errs, variances = [], [], []
-    for r in range(reps):
-        qrng = scipy_qmc.Sobol(problem.d, rng=np.random.default_rng(seed * 100_000 + r))
-        start = time.perf_counter()
-        res = scipy_integrate.qmc_quad(problem.numpy_f, np.zeros(problem.d), np.ones(problem.d),
-                                       n_estimates=8, n_points=n, qrng=qrng)
-        times.append(time.perf_counter() - start)
-        errs.append(float(res.integral) - problem.exact)
-        variances.append(float(res.standard_error) ** 2)
-    sp_t, sp_var = min(times), float(np.mean(variances))
+    # qmc_quad passes x of shape (d, n).
+    numpy_f = lambda x: problem.numpy_f(x.T)
+    qrngs = iter([scipy_qmc.Sobol(problem.d, rng=np.random.default_rng(seed * 100_000 + r))
+                  for r in range(reps)])
+    results = []
+
+    def scipy_call():
+        results.append(scipy_integrate.qmc_quad(numpy_f, np.zeros(problem.d), np.ones(problem.d),
+                                                n_estimates=8, n_points=n, qrng=next(qrngs)))
+
+    scipy_timing = time_call(scipy_call, repeats=reps - 1)
+    errs = [float(res.integral) - problem.exact for res in results]
+    variances = [float(res.standard_error) ** 2 for res in results]
+    # SciPy does not compile: its fastest call may be the first.
+    sp_t, sp_var = min(scipy_timing.seconds), float(np.mean(variances))
     out.update(scipy_s=sp_t, scipy_mse=float(np.mean(np.square(errs))), scipy_var=sp_var,
                ratio=(sp_var * sp_t) / (jax_var * jax_t) if jax_var > 0 else math.inf)
     return out
@@ -313,7 +223,7 @@ def _run(ctx: Context) -> Result:
 
     conv_rows, strat_rows, eff_rows, plots = [], [], [], []
     data: dict = {"problems": {}}
-    for i, problem in enumerate(problems()):
+    for i, problem in enumerate(_problems()):
         ctx.log(f"{problem.name}: convergence")
         curves = {
             "scrambled Sobol'": _prefix_rmse(problem, "sobol", log2_max, reps, 10 * i),

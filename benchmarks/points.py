@@ -8,7 +8,6 @@ and no jittered grid, so those are compared with the obvious NumPy code.
 
 from __future__ import annotations
 
-import importlib
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -34,8 +33,12 @@ def _stratified_counts(n: int, d: int) -> tuple[int, ...] | None:
     return tuple(2**k for k in per_axis)
 
 
-def _numpy_lattice(n: int, d: int, rng: np.random.Generator) -> np.ndarray:
-    z = points._lattice_vector()[:d]
+def _lattice_vector(n: int, d: int) -> np.ndarray:
+    """jaxmc's generating vector modulo `n` (a power of two): point 1 of its lattice is z/n."""
+    return np.rint(np.asarray(points.lattice(n, d)[1], np.float64) * n).astype(np.int64)
+
+
+def _numpy_lattice(n: int, d: int, z: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     x = (np.arange(n, dtype=np.int64)[:, None] * z[None, :] % n) / n
     return (x + rng.random(d)) % 1.0
 
@@ -103,12 +106,13 @@ def _cases(
         ),
     ]
     if d <= points.LATTICE_MAX_DIM:
+        z = _lattice_vector(n, d)
         cases.append(
             (
                 "lattice (shifted)",
                 lambda: lattice_key(key),
                 "numpy lattice",
-                lambda: _numpy_lattice(n, d, rng),
+                lambda: _numpy_lattice(n, d, z, rng),
             )
         )
     cases.append(
@@ -138,8 +142,7 @@ def _cases(
 
 
 def run(ctx: Context) -> Result:
-    # `optional_import` returns the top-level package; take the submodule from it.
-    qmc = None if optional_import("scipy") is None else importlib.import_module("scipy.stats.qmc")
+    qmc = optional_import("scipy.stats.qmc")
     n = 2**18 if ctx.quick else 2**20
     repeats = 2 if ctx.quick else 5
     dims = (8, 64)
@@ -150,7 +153,7 @@ def run(ctx: Context) -> Result:
     for d in dims:
         for name, ours, their_name, theirs in _cases(n, d, qmc):
             ctx.log(f"d={d} {name}")
-            ours_t = time_call(ours, repeats=repeats)
+            ours_t = time_call(ours, repeats=repeats).summary()
             entry = {"d": d, "jaxmc": name, "jaxmc_time": ours_t, "competitor": their_name}
             if theirs is None:
                 rows.append(
@@ -169,7 +172,7 @@ def run(ctx: Context) -> Result:
             else:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    their_t = time_call(theirs, repeats=max(1, repeats - 1))
+                    their_t = time_call(theirs, repeats=max(1, repeats - 1)).summary()
                 speedup = their_t["median_s"] / ours_t["median_s"]
                 faster = speedup > 1
                 if not faster:

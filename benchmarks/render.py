@@ -11,8 +11,6 @@ reported alongside.
 
 from __future__ import annotations
 
-import time
-
 import jax
 import numpy as np
 
@@ -44,11 +42,12 @@ def _reference(key, scene, *, spp, width, height, parts, log):
     """Mean of `parts` independent power-heuristic renders, and a noise estimate of it."""
     images = []
     for i, k in enumerate(jax.random.split(key, parts)):
-        start = time.perf_counter()
-        images.append(
-            np.asarray(render(k, scene, strategy="mis_power", spp=spp, width=width, height=height))
+        part = time_call(
+            lambda k=k: render(k, scene, strategy="mis_power", spp=spp, width=width, height=height),
+            repeats=0,
         )
-        log(f"reference part {i + 1}/{parts}: {time.perf_counter() - start:.1f} s")
+        images.append(np.asarray(part.output))
+        log(f"reference part {i + 1}/{parts}: {part.first_s:.1f} s")
     stack = np.stack(images)
     ref = stack.mean(0)
     # variance of the mean per pixel, averaged: the MSE floor the reference adds
@@ -81,7 +80,7 @@ def run(ctx: Context) -> Result:
                 k, scene, strategy=strategy, spp=spp, width=width, height=height, points=points
             )
 
-        timings[strategy, points] = time_call(call, repeats=5)
+        timings[strategy, points] = time_call(call, repeats=5).summary()
         ctx.log(
             f"{strategy:15s} {points:16s} compile+run {timings[strategy, points]['first_s']:.1f} s,"
             f" run {timings[strategy, points]['min_s'] * 1e3:.0f} ms"

@@ -8,9 +8,9 @@ least 0.8 of the raw rate and ahead of a vectorised numpy implementation
 (PCG64 via `default_rng`, float32) at every d, in samples/s, steady state.
 Compile time is reported separately. Every JAX path is timed with keys of the
 default threefry implementation and of `rbg` (XLA's RngBitGenerator). jaxmc
-draws its uniforms with its own Threefry-2x32-20 written in `jnp`
-(`jaxmc._random`), which XLA fuses and vectorises; the key only seeds it, so
-the raw column measures `jax.random`, not jaxmc's generator.
+draws its uniforms with its own Threefry-2x32-20 written in `jnp`, which
+XLA fuses and vectorises; the key only seeds it, so the raw column measures
+`jax.random`, not jaxmc's generator.
 """
 
 from __future__ import annotations
@@ -61,12 +61,12 @@ def run(ctx: Context) -> Result:
             raw = jax.jit(lambda k: jnp.sum(jax.random.uniform(k, (n, d), jnp.float32)))
             uni = jax.jit(lambda k: jaxmc.uniform(k, _integrand, lo, hi, n))
             timings = {
-                "raw": time_call(lambda: raw(key), repeats=repeats),
-                "uniform": time_call(lambda: uni(key), repeats=repeats),
+                "raw": time_call(lambda: raw(key), repeats=repeats).summary(),
+                "uniform": time_call(lambda: uni(key), repeats=repeats).summary(),
                 "integrate": time_call(
                     lambda: jaxmc.integrate(key, _integrand, lo, hi, n=n, method="plain"),
                     repeats=repeats,
-                ),
+                ).summary(),
             }
             entry[impl] = {
                 name: {**t, "samples_per_s": n / t["median_s"]} for name, t in timings.items()
@@ -76,7 +76,7 @@ def run(ctx: Context) -> Result:
                 + ", ".join(f"{k} {n / t['median_s'] / 1e6:.1f} M/s" for k, t in timings.items())
             )
         rng = np.random.default_rng(0)
-        t_np = time_call(lambda: _numpy_plain(rng, n, d, 1 << 20), repeats=repeats)
+        t_np = time_call(lambda: _numpy_plain(rng, n, d, 1 << 20), repeats=repeats).summary()
         entry["numpy"] = {**t_np, "samples_per_s": n / t_np["median_s"]}
         ctx.log(f"d={d} numpy: {n / t_np['median_s'] / 1e6:.1f} M/s")
         data.append(entry)

@@ -56,7 +56,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_bounds, check_callable, check_count, evaluate
+from ._checks import check_bounds, check_callable, check_count
+from ._integrand import evaluate
 
 
 __all__ = ["MAX_EVALUATIONS", "gauss_legendre", "midpoint", "simpson", "trapezoid"]

@@ -52,7 +52,7 @@ class Estimate(eqx.Module):
 
     def interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
         r"""Normal-approximation (CLT) interval $\mathrm{mean} \pm z_{(1+\ell)/2}\,\mathrm{stderr}$."""
-        _check_level(level)
+        check_level(level)
         z = ndtri(jnp.asarray(0.5 + level / 2, dtype=jnp.result_type(self.mean)))
         half = z * self.stderr
         return self.mean - half, self.mean + half
@@ -85,7 +85,8 @@ class Combined(Estimate):
     parts: Estimate
 
 
-def _check_level(level: float) -> None:
+def check_level(level: float) -> None:
+    """A confidence level in (0, 1) (checked when concrete)."""
     if not isinstance(level, jax.core.Tracer) and not 0 < float(level) < 1:
         raise ValueError(f"`level` must be in (0, 1), got {level}.")
 
@@ -258,3 +259,78 @@ def estimate_iid(y: jax.Array, bad: jax.Array) -> Estimate:
     return estimate_from_moments(
         moments(y), jnp.asarray(n, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
     )
+
+
+# Lanes of the two-level reduction inside a block: sums of 128 rows, then a tree.
+_LANE = 128
+
+
+def block_moments(y: jax.Array, valid: jax.Array) -> Moments:
+    """Moments of one block of values `(n, ...)` (rows where `valid`) by a two-level
+    reduction: lanes of 128 rows, then a balanced tree (`merge_all`)."""
+    block = y.shape[0]
+    lane = min(_LANE, block)
+    rows = -(-block // lane)
+    if rows * lane != block:  # e.g. a jittered grid of 25^3 points: pad with invalid rows
+        pad = rows * lane - block
+        y = jnp.concatenate([y, jnp.zeros((pad,) + y.shape[1:], y.dtype)])
+        valid = jnp.concatenate([valid, jnp.zeros(pad, bool)])
+    y2 = y.reshape((rows, lane) + y.shape[1:])
+    v2 = valid.reshape(rows, lane)
+    mask = v2.reshape(v2.shape + (1,) * (y.ndim - 1)).astype(y.dtype)
+    count = jnp.sum(v2, axis=1).astype(y.dtype)
+    safe = jnp.maximum(count, 1).reshape((rows,) + (1,) * (y.ndim - 1))
+    mean = jnp.sum(y2 * mask, axis=1) / safe
+    m2 = jnp.sum(mask * (y2 - mean[:, None]) ** 2, axis=1)
+    return merge_all(Moments(count, mean, m2))
+
+
+def merge_across_devices(m: Moments, axes: tuple[str, ...]) -> Moments:
+    """Merge per-device moments (scalar counts) across mesh `axes` with collectives.
+
+    The same update as `merge`, written as sums: `psum` of counts, of
+    count-weighted means, and of centred second moments about the pooled mean.
+    """
+    count = jax.lax.psum(m.count, axes)
+    safe = jnp.where(count > 0, count, 1)
+    mean = jax.lax.psum(m.count * m.mean, axes) / safe
+    m2 = jax.lax.psum(m.m2 + m.count * (m.mean - mean) ** 2, axes)
+    return Moments(count, mean, m2)
+
+
+def slot_of_sample(counts: jax.Array, n: int) -> jax.Array:
+    """The stratum (slot) of each of `n` samples laid out stratum by stratum, `counts` per
+    stratum (zeros allowed): `(n,)` non-decreasing indices."""
+    starts = jnp.cumsum(counts)[:-1]
+    return jnp.cumsum(jnp.zeros((n,), jnp.int32).at[starts].add(1, mode="drop"))
+
+
+def stratified_estimate(y, slot, counts, volume, n_nonfinite) -> tuple[Estimate, jax.Array]:
+    r"""The stratified estimate from values `y` `(n, ...)` laid out stratum by stratum (§4.2).
+
+    Stratum $h$ of relative volume $v_h$ (`volume`: one scalar for equal strata,
+    or `(H,)`) holds $n_h$ = `counts[h]` of the samples (`slot` gives each
+    sample's stratum, sorted); with $ar y_h$ and $s_h^2$ its sample mean and
+    unbiased variance,
+    $$\hat I = \sum_h v_h ar y_h,\qquad \hat V = \sum_h v_h^2\, s_h^2 / n_h.$$
+    Strata with fewer than two samples contribute no variance.
+
+    **Returns:** the `Estimate` and the per-stratum variances $s_h^2$ `(H, ...)`.
+    """
+    h = counts.shape[0]
+    cnt = counts.astype(y.dtype)
+    shape = (h,) + (1,) * (y.ndim - 1)
+    seg = lambda a: jax.ops.segment_sum(a, slot, h, indices_are_sorted=True)  # noqa: E731
+    per_stratum = jnp.reshape(jnp.maximum(cnt, 1.0), shape)
+    mean_h = seg(y) / per_stratum
+    var_h = seg((y - mean_h[slot]) ** 2) / jnp.reshape(jnp.maximum(cnt - 1.0, 1.0), shape)
+    if jnp.ndim(volume) == 0:  # equal strata: factor the volume out of the sums
+        mean = volume * jnp.sum(mean_h, axis=0)
+        variance = volume**2 * jnp.sum(var_h / per_stratum, axis=0)
+    else:
+        v = jnp.reshape(volume, shape)
+        mean = jnp.sum(v * mean_h, axis=0)
+        variance = jnp.sum(v**2 * var_h / per_stratum, axis=0)
+    n = jnp.asarray(y.shape[0], jnp.int32)
+    est = Estimate(mean=mean, variance=variance, n=n, n_nonfinite=n_nonfinite)
+    return est, var_h

@@ -11,10 +11,12 @@ from jaxmc.distributions import Piecewise1D, Piecewise2D, disk_rejection, reject
 from jaxmc.testing import chi2_table
 from jaxmc.warps import disk_polar_pdf
 
+from .helpers import P_FLOOR
+
 
 # Bonferroni over the χ² tests of this file (fixed keys: deterministic outcomes).
 N_CHI2 = 4
-ALPHA = 1e-4 / N_CHI2
+ALPHA = P_FLOOR / N_CHI2
 
 VALUES_1D = jnp.array([0.0, 1.0, 3.0, 0.0, 0.5, 2.0, 2.0, 0.25])
 VALUES_2D = jnp.asarray(

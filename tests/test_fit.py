@@ -12,21 +12,7 @@ import jaxmc
 from jaxmc.fit import FitResult, adapt, fit, fit_on_samples
 from jaxmc.proposals import GaussianMixture, Grid, Mixture, Partition, PiecewiseLinear, Uniform
 
-
-def peak(d, centre=0.3, s=0.05):
-    """A normalised Gaussian of width `s` at `centre` (integral 1 on [0,1]^d up to ~1e-9)."""
-    c = jnp.full((d,), centre)
-    return lambda x: jnp.exp(-jnp.sum((x - c) ** 2) / (2 * s * s)) / (2 * jnp.pi * s * s) ** (d / 2)
-
-
-def box(d):
-    return jnp.zeros(d), jnp.ones(d)
-
-
-@eqx.filter_jit
-def per_sample_variance(key, f, prop, n):
-    """Variance of one sample of f/p (what the estimator's variance is, times n)."""
-    return jaxmc.importance(key, f, prop, n).variance * n
+from .helpers import box, peak, per_sample_variance
 
 
 def _quad_2d(pdf, m=300):
@@ -404,18 +390,18 @@ def test_partition_vmap_family_and_reuse():
 def test_partition_allocation():
     """Counts sum to n, at least two per leaf, none past the leaves, even share plus the
     rest in proportion to the weights."""
-    from jaxmc._fit._partition import _allocate
+    from jaxmc._fit._miser import allocate_to_cells
 
     slots, count, n = 64, 40, 1000
     w = jax.random.uniform(jax.random.key(0), (slots,)) ** 3
     vol = jnp.full((slots,), 1.0 / count)
-    counts = np.asarray(_allocate(w, vol, jnp.asarray(count), n, 1.0))
+    counts = np.asarray(allocate_to_cells(w, vol, jnp.asarray(count), n, 1.0))
     assert counts.sum() == n and counts[:count].min() >= 2 and counts[count:].max() == 0
     spare = n - 2 * count
     share = 0.25 / count + 0.75 * np.asarray(w)[:count] / np.asarray(w)[:count].sum()
     assert np.all(np.abs(counts[:count] - 2 - spare * share) <= 1 + 1e-6)
     # No positive weight: the adaptive share follows the volumes.
-    flat = np.asarray(_allocate(jnp.zeros(slots), vol, jnp.asarray(count), n, 1.0))
+    flat = np.asarray(allocate_to_cells(jnp.zeros(slots), vol, jnp.asarray(count), n, 1.0))
     assert flat.sum() == n and flat[:count].max() - flat[:count].min() <= 1
 
 
@@ -478,33 +464,34 @@ def test_bad_inputs():
 def test_vegas_plus_allocation(d, n):
     """VEGAS+ bookkeeping: strata as vegas picks them, counts sum to n with an even floor of at
     least two, samples laid out cube by cube, and row-major hypercube corners."""
-    from jaxmc._fit._adapt import _allocate, _corners, _hypercube_of_sample, _strata
+    from jaxmc._fit._vegas import allocate_to_hypercubes, hypercube_corners, strata_per_axis
+    from jaxmc.stats import slot_of_sample
 
-    strata = _strata(d, n, 2**16)
+    strata = strata_per_axis(d, n, 2**16)
     h = int(np.prod(strata))
     assert 2 * h <= n / 4 + 1e-9 or h == 1
     assert max(strata) - min(strata) <= 1
     sigma = jax.random.uniform(jax.random.key(d), (h,)) ** 4
-    counts = np.asarray(_allocate(sigma, n, 0.75))
+    counts = np.asarray(allocate_to_hypercubes(sigma, n, 0.75))
     floor = max(2, int(0.25 * n / h))
     assert counts.sum() == n and counts.min() >= floor
     share = np.asarray(sigma) ** 0.75 / np.sum(np.asarray(sigma) ** 0.75) * (n - floor * h)
     assert np.all(np.abs(counts - floor - share) <= 1 + 1e-6)
-    cube = np.asarray(_hypercube_of_sample(jnp.asarray(counts), n))
+    cube = np.asarray(slot_of_sample(jnp.asarray(counts), n))
     np.testing.assert_array_equal(cube, np.repeat(np.arange(h), counts))
-    corners = np.asarray(_corners(jnp.asarray(cube), strata, jnp.float32))
+    corners = np.asarray(hypercube_corners(jnp.asarray(cube), strata, jnp.float32))
     np.testing.assert_array_equal(corners, np.stack(np.unravel_index(cube, strata), axis=-1))
 
 
 def test_vegas_plus_allocation_never_below_floor():
     """Many hypercubes and very uneven sigma (half of them zero): the float cumsum of the
     shares is summed as a tree and can step down; the counts must still keep the floor."""
-    from jaxmc._fit._adapt import _allocate
+    from jaxmc._fit._vegas import allocate_to_hypercubes
 
     n, h = 524_288, 65_536
     for seed in range(3):
         k1, k2 = jax.random.split(jax.random.key(seed))
         sigma = jax.random.uniform(k1, (h,), jnp.float32) ** 8
         sigma = jnp.where(jax.random.bernoulli(k2, 0.5, (h,)), sigma, 0.0)
-        counts = np.asarray(jax.jit(lambda s: _allocate(s, n, 0.75))(sigma))
+        counts = np.asarray(jax.jit(lambda s: allocate_to_hypercubes(s, n, 0.75))(sigma))
         assert counts.sum() == n and counts.min() >= 2, (counts.min(), counts.sum())

@@ -11,20 +11,15 @@ import scipy.stats
 
 import jaxmc
 import jaxmc.fit
-from jaxmc._fit._fit import _default_solver
-from jaxmc._flow import Flow, _rqs_forward, _rqs_inverse
+from jaxmc._fit._solvers import default_solver
+from jaxmc._proposals._flow import _rqs_forward, _rqs_inverse
+from jaxmc.proposals import Flow
+
+from .helpers import midpoint_grid
 
 
 LO2 = jnp.array([-1.0, 0.0])
 HI2 = jnp.array([2.0, 0.5])
-
-
-def _midpoint_grid(lo, hi, m):
-    """Midpoints of an `m x m` grid on the box and the cell area."""
-    lo, hi = np.asarray(lo), np.asarray(hi)
-    axes = [lo[j] + (hi[j] - lo[j]) * (np.arange(m) + 0.5) / m for j in range(2)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
-    return jnp.asarray(pts), float(np.prod((hi - lo) / m))
 
 
 def _perturbed(key, lo=LO2, hi=HI2, scale=3.0, layers=2, hidden=16):
@@ -51,7 +46,7 @@ def test_zero_init_is_uniform(key):
 
 def test_integrates_to_one_2d(flow2):
     flow = flow2
-    pts, area = _midpoint_grid(LO2, HI2, 600)
+    pts, area = midpoint_grid(LO2, HI2, 600)
     pdf = flow.pdf(pts)
     # The density really varies (so a wrong log-det could not pass by luck)...
     assert float(pdf.max() / pdf.min()) > 20
@@ -160,7 +155,7 @@ def test_chi2_samples_follow_pdf(flow2):
     flow = flow2
     n, cells, sub = 40_000, 10, 60
     x, _ = flow.sample(jax.random.key(7), n)
-    pts, area = _midpoint_grid(LO2, HI2, cells * sub)
+    pts, area = midpoint_grid(LO2, HI2, cells * sub)
     mass = np.asarray(flow.pdf(pts)).reshape(cells, sub, cells, sub).sum(axis=(1, 3)) * area
     expected = n * mass.ravel() / mass.sum()
     scaled = np.asarray((x - LO2) / (HI2 - LO2))
@@ -304,6 +299,6 @@ def test_fit_default_solver_for_flows(key):
     # (Each fit compiles anew, so the other cases check the choice, not a run.)
     mixed = jaxmc.proposals.Mixture((flow, jaxmc.proposals.Uniform(lo, hi)), jnp.array([0.9, 0.1]))
     params = lambda prop: eqx.filter(prop, eqx.is_inexact_array)
-    assert isinstance(_default_solver(mixed, params(mixed)), optx.OptaxMinimiser)
+    assert isinstance(default_solver(mixed, params(mixed)), optx.OptaxMinimiser)
     gm = jaxmc.proposals.GaussianMixture(jax.random.key(2), lo, hi, 2)
-    assert isinstance(_default_solver(gm, params(gm)), optx.BFGS)
+    assert isinstance(default_solver(gm, params(gm)), optx.BFGS)

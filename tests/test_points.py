@@ -16,29 +16,13 @@ from scipy.stats import qmc
 
 from jaxmc import points
 
-
-P_FLOOR = 1e-4
+from .helpers import P_FLOOR, assert_uniform, one_per_bin
 
 
 def _scipy_engine(engine, skip):
     if skip:
         engine.fast_forward(skip)
     return engine
-
-
-def _assert_uniform(samples, label):
-    """KS test of each column of `samples` against U[0,1), Bonferroni over columns."""
-    samples = np.asarray(samples)
-    assert samples.min() >= 0.0 and samples.max() < 1.0, label
-    cols = samples.reshape(samples.shape[0], -1)
-    pvalues = [stats.kstest(cols[:, j], "uniform").pvalue for j in range(cols.shape[1])]
-    assert min(pvalues) > P_FLOOR / cols.shape[1], f"{label}: KS p-values {pvalues}"
-
-
-def _one_per_bin(x, bins):
-    """Every column of `x` has exactly one point in each of `bins` equal bins."""
-    cells = np.floor(np.asarray(x) * bins).astype(np.int64)
-    return all(np.array_equal(np.sort(cells[:, j]), np.arange(bins)) for j in range(cells.shape[1]))
 
 
 # -------------------------------------------------------------------- exactness
@@ -127,9 +111,9 @@ def test_sobol_balance(key, scrambled):
     # dyadic interval of length 2^-m, and LMS + digital shift keeps that.
     k = key if scrambled else None
     for m in (1, 4, 9):
-        assert _one_per_bin(points.sobol(2**m, 64, key=k), 2**m), m
+        assert one_per_bin(points.sobol(2**m, 64, key=k), 2**m), m
     # ... also for the block [2^m, 2^(m+1)) of the sequence.
-    assert _one_per_bin(points.sobol(2**8, 16, key=k, skip=2**8), 2**8)
+    assert one_per_bin(points.sobol(2**8, 16, key=k, skip=2**8), 2**8)
 
 
 def test_sobol_scrambled_two_dimensional_net(key):
@@ -148,10 +132,10 @@ def test_halton_scrambled_keeps_strata(key):
     # Digit permutations keep the van der Corput strata: the first b^m points of the
     # base-b dimension have one point in each interval of length b^-m.
     x = np.asarray(points.halton(3**5, 3, key=key))
-    assert _one_per_bin(x[:, 1:2], 3**5)
-    assert _one_per_bin(x[:128, 0:1], 128)
+    assert one_per_bin(x[:, 1:2], 3**5)
+    assert one_per_bin(x[:128, 0:1], 128)
     x = np.asarray(points.halton(5**3, 3, key=key))
-    assert _one_per_bin(x[:, 2:3], 5**3)
+    assert one_per_bin(x[:, 2:3], 5**3)
 
 
 def test_stratified_one_point_per_cell(key):
@@ -168,7 +152,7 @@ def test_stratified_one_point_per_cell(key):
 def test_latin_hypercube_one_point_per_bin(key, n, d):
     x = points.latin_hypercube(key, n, d)
     assert x.shape == (n, d)
-    assert _one_per_bin(x, n)
+    assert one_per_bin(x, n)
 
 
 def test_latin_hypercube_permutations_are_uniform():
@@ -208,7 +192,7 @@ def test_randomised_points_are_marginally_uniform(name):
     keys = jax.random.split(jax.random.key(1234), 2000)
     x = np.asarray(jax.jit(jax.vmap(fn))(keys))
     assert x.min() >= 0.0 and x.max() < 1.0
-    _assert_uniform(x[:, [0, 1, 37], :], name)
+    assert_uniform(x[:, [0, 1, 37], :], name)
     # jit + vmap over keys gives what one call per key gives (up to the last bit: XLA may
     # fuse a product into an FMA differently in the batched program).
     for i in (0, 1999):
@@ -232,7 +216,7 @@ def test_legacy_keys(key):
 def test_large_scrambled_sets_are_uniform(key):
     # Within one randomised set the empirical distribution is (much better than) uniform.
     for x in (points.sobol(4096, 8, key=key), points.halton(4096, 8, key=key)):
-        _assert_uniform(x, "large set")
+        assert_uniform(x, "large set")
 
 
 def test_float32_results_stay_below_one(key):

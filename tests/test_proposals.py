@@ -210,7 +210,7 @@ def test_partition_cells_tile_the_box(key):
     np.testing.assert_allclose(mass.sum(), 1.0, rtol=1e-12)
     x, p = sample(part, jax.random.fold_in(key, 1), 5000)
     u = (np.asarray(x) - np.asarray(LO2)) / np.asarray(HI2 - LO2)
-    found = np.asarray(part._locate(jnp.asarray(u)))
+    found = np.asarray(part.locate(jnp.asarray(u)))
     lo_all, hi_all, _, _ = (np.asarray(a) for a in part.cells())
     assert np.all(np.asarray(part.child)[found] < 0)
     assert np.all((lo_all[found] <= np.asarray(x)) & (np.asarray(x) <= hi_all[found]))
@@ -219,9 +219,9 @@ def test_partition_cells_tile_the_box(key):
     np.testing.assert_array_equal(inside.all(-1).sum(1), 1)
     # The density is P_c / V_c on each leaf.
     vol = np.prod(hi_all[found] - lo_all[found], axis=1)
-    np.testing.assert_allclose(p, np.exp(np.asarray(part._log_mass()))[found] / vol, rtol=1e-12)
+    np.testing.assert_allclose(p, np.exp(np.asarray(part.log_mass()))[found] / vol, rtol=1e-12)
     # The fitting draw is stratified over the leaves with weights P_c / n_c: exact mass sums.
-    xs, log_p, w = part._draw(key, 1000)
+    xs, log_p, w = part.weighted_draw(key, 1000)
     np.testing.assert_allclose(jnp.sum(w), 1.0, rtol=1e-12)
     np.testing.assert_allclose(log_p, part.log_pdf(xs), rtol=1e-12)
 

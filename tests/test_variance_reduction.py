@@ -1,11 +1,12 @@
 """Variance reduction: stratified, MIS (multi- and one-sample), control and antithetic variates.
 
-Statistical checks run each estimator under `jit(vmap)` over K fixed keys and
-test two things: unbiasedness (the average of the K estimates is within 5 of its
-standard errors of the integral, i.e. the mean z-score is within 5/sqrt(K) of 0) and
-an honest variance (the empirical variance of the K estimates matches the mean
-reported variance within a chi-square band of 5 standard deviations,
-sqrt(2/(K-1)) relative). Randomised QMC has its own file, test_vr_qmc.py.
+Statistical checks run each estimator under `jit(vmap)` over K = 400 fixed keys
+(`helpers.run_keys`) and test two things (`helpers.assert_unbiased_and_honest`):
+unbiasedness (the average of the K estimates is within 5 of its standard errors of
+the integral, i.e. the mean z-score is within 5/sqrt(K) of 0) and an honest variance
+(the empirical variance of the K estimates matches the mean reported variance within
+a chi-square band of 5 standard deviations, sqrt(2/(K-1)) relative). Randomised QMC
+has its own file, test_vr_qmc.py.
 """
 
 import equinox as eqx
@@ -14,36 +15,28 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmc._estimators._basic import importance, uniform
-from jaxmc._estimators._control import antithetic, control_variate
-from jaxmc._estimators._mis import mis, mis_one_sample
-from jaxmc._estimators._stratified import snake_order, stratified
+from jaxmc._estimators._stratified import snake_order  # a private helper, tested directly
+from jaxmc.estimators import (
+    antithetic,
+    control_variate,
+    importance,
+    mis,
+    mis_one_sample,
+    stratified,
+    uniform,
+)
 
-
-K = 400
-VAR_TOL = 5 * np.sqrt(2 / (K - 1))
-
-
-def run_keys(fn, seed, k=K):
-    """`fn(key) -> Estimate` over k deterministic keys, jitted and vmapped."""
-    keys = jax.random.split(jax.random.key(seed), k)
-    return jax.jit(jax.vmap(fn))(keys)
-
-
-def assert_unbiased_and_honest(est, exact, *, honest="equal"):
-    mean = np.asarray(est.mean)
-    var = np.asarray(est.variance)
-    assert np.all(np.isfinite(var)) and np.all(var > 0)
-    # The average of K estimates, in units of its empirical standard error (a per-key
-    # z-score would be skewed when a variance estimate has few degrees of freedom).
-    z = (mean.mean(axis=0) - exact) / (mean.std(axis=0, ddof=1) / np.sqrt(len(mean)))
-    assert abs(z).max() < 5, f"z-score of the average {z}"
-    ratio = mean.var(axis=0, ddof=1) / var.mean(axis=0)
-    if honest == "equal":
-        assert np.all(abs(ratio - 1) < VAR_TOL), f"empirical/reported variance {ratio}"
-    else:  # conservative: the reported variance is not below the empirical one
-        assert np.all(ratio < 1 + VAR_TOL), f"empirical/reported variance {ratio}"
-    return ratio
+from .helpers import (
+    SMOOTH2,
+    SMOOTH2_HI,
+    SMOOTH2_LO,
+    assert_unbiased_and_honest,
+    run_keys,
+    smooth2,
+    tilted,
+    tilted_da,
+    tilted_da_integral,
+)
 
 
 class Normal(eqx.Module):
@@ -90,20 +83,10 @@ def test_snake_order_visits_every_cell_through_faces():
         assert np.all(np.abs(np.diff(cells, axis=0)).sum(axis=1) == 1)
 
 
-def smooth2(x):
-    return jnp.stack([jnp.exp(x[0] - x[1]), jnp.cos(3 * x[0] + x[1])])
-
-
-# ∫_{[0,1]x[0,2]} of smooth2
-SMOOTH2 = np.array(
-    [(np.e - 1) * (1 - np.exp(-2)), (np.cos(2) + np.cos(3) - np.cos(5) - 1) / 3]
-)
-
-
 def test_stratified_unbiased_and_honest_vector_output():
-    lo, hi = jnp.zeros(2), jnp.array([1.0, 2.0])
+    lo, hi = SMOOTH2_LO, SMOOTH2_HI
     est = run_keys(lambda k: stratified(k, smooth2, lo, hi, (4, 3), per_stratum=3), 1)
-    assert est.n[0] == 36 and est.mean.shape == (K, 2)
+    assert est.n[0] == 36 and est.mean.shape == (400, 2)
     assert_unbiased_and_honest(est, SMOOTH2)
 
 
@@ -116,7 +99,7 @@ def test_stratified_scalar_bounds_default_per_stratum():
 @pytest.mark.parametrize("counts", [(4, 4), (5, 3), (3, 1)])
 def test_stratified_one_per_stratum_is_unbiased_and_not_optimistic(counts):
     # (5, 3) and (3, 1) have an odd number of strata: the last three collapse as a triple.
-    lo, hi = jnp.zeros(2), jnp.array([1.0, 2.0])
+    lo, hi = SMOOTH2_LO, SMOOTH2_HI
     est = run_keys(lambda k: stratified(k, smooth2, lo, hi, counts, per_stratum=1), 3)
     ratio = assert_unbiased_and_honest(est, SMOOTH2, honest="conservative")
     # Collapsing overstates by the neighbours' mean differences, but stays in bounds
@@ -130,7 +113,7 @@ def test_stratified_one_stratum_one_point_has_infinite_variance(key):
 
 
 def test_stratified_beats_plain_at_equal_n():
-    lo, hi = jnp.zeros(2), jnp.array([1.0, 2.0])
+    lo, hi = SMOOTH2_LO, SMOOTH2_HI
     f = lambda x: smooth2(x)[0]
     strat = run_keys(lambda k: stratified(k, f, lo, hi, (8, 8), per_stratum=2), 4)
     plain = run_keys(lambda k: uniform(k, f, lo, hi, 128), 5)
@@ -320,7 +303,7 @@ def test_control_variate_unbiased_honest_and_reduces_variance():
 
 
 def test_control_variate_vector_output_and_odd_n():
-    lo, hi = jnp.zeros(2), jnp.array([1.0, 2.0])
+    lo, hi = SMOOTH2_LO, SMOOTH2_HI
     g = lambda x: jnp.stack([1 + x[0] - x[1], 1 - 4.5 * (3 * x[0] + x[1] - 2.5) ** 2 / 10])
     G = jnp.array([1.0, 2.0 - 0.45 * 13 / 6])  # E[3x0 + x1 - 2.5] = 0, Var = 13/12
     est = run_keys(lambda k: control_variate(k, smooth2, g, G, lo, hi, 41), 22)
@@ -334,7 +317,7 @@ def test_antithetic_unbiased_honest_and_helps_monotone_f():
     assert_unbiased_and_honest(anti, np.e - 1)
     plain = run_keys(lambda k: uniform(k, jnp.exp, 0.0, 1.0, n), 24)
     assert anti.mean.var() < plain.mean.var() / 10
-    lo, hi = jnp.zeros(2), jnp.array([1.0, 2.0])
+    lo, hi = SMOOTH2_LO, SMOOTH2_HI
     est = run_keys(lambda k: antithetic(k, smooth2, lo, hi, 50), 25)
     assert_unbiased_and_honest(est, SMOOTH2)
 
@@ -356,7 +339,7 @@ def test_control_and_antithetic_bad_inputs(key):
 
 # --- jit, vmap over keys and parameters, grad ---------------------------------
 
-LO2, HI2 = jnp.zeros(2), jnp.array([1.0, 2.0])
+LO2, HI2 = SMOOTH2_LO, SMOOTH2_HI
 
 # Each case: (estimator of ∫ f_a, and of ∫ ∂f_a/∂a on the same points), exact d/da ∫ f_a.
 # f_a(x) = exp(a x0 - x1) on [0,1]x[0,2] (∫ = (e^a - 1)/a (1 - e^-2)); for MIS,
@@ -385,8 +368,7 @@ BOX_CASES = {"stratified": _strat, "stratified_1": _strat1, "control": _cv, "ant
 @pytest.mark.parametrize("name", sorted(BOX_CASES))
 def test_box_estimators_jit_vmap_grad(name, key):
     make = BOX_CASES[name]
-    fa = lambda a: (lambda x: jnp.exp(a * x[0] - x[1]))
-    dfa = lambda a: (lambda x: x[0] * jnp.exp(a * x[0] - x[1]))
+    fa, dfa = tilted, tilted_da
     a = 0.7
 
     jitted = jax.jit(lambda k, a: make(fa(a))(k))(key, a)
@@ -403,7 +385,7 @@ def test_box_estimators_jit_vmap_grad(name, key):
     # the same samples (for the control variate, the cross-fitted c moves with a too,
     # so compare with the exact derivative instead).
     grad = jax.jit(jax.grad(lambda a: make(fa(a))(key).mean))(a)
-    exact = (np.exp(a) * (a - 1) + 1) / a**2 * (1 - np.exp(-2))
+    exact = tilted_da_integral(a)
     if name != "control":
         np.testing.assert_allclose(grad, jax.jit(make(dfa(a)))(key).mean, rtol=1e-10)
     grads = jax.jit(jax.vmap(jax.grad(lambda a, k: make(fa(a))(k).mean), (None, 0)))(

@@ -11,6 +11,8 @@ import scipy.integrate
 from jaxmc import warps
 from jaxmc.testing import chi2_table
 
+from .helpers import P_FLOOR
+
 
 N = 100_000  # samples per χ² test
 
@@ -79,7 +81,7 @@ CHI2_CASES = [
 ]
 # Bonferroni: all χ² tests of this file together reject a correct sampler with
 # probability below 1e-4 (keys are fixed, so the outcome is deterministic anyway).
-ALPHA = 1e-4 / len(CHI2_CASES)
+ALPHA = P_FLOOR / len(CHI2_CASES)
 
 
 @pytest.mark.parametrize("index", range(len(CHI2_CASES)), ids=[c[0] for c in CHI2_CASES])

@@ -9,7 +9,10 @@ import jax
 import jax.numpy as jnp
 
 from .. import _random
-from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
+from .._box import to_box
+from .._checks import check_bounds, check_callable, check_count, check_key
+from .._integrand import evaluate, ratio
+from ..proposals import check_proposal
 from ..stats import Estimate, estimate_iid
 
 
@@ -54,20 +57,11 @@ def uniform(
     lo, hi = check_bounds(lo, hi)
     n = check_count(n)
     u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
-    x = lo + (hi - lo) * u
+    x = to_box(u, lo, hi)
     fx = evaluate(f, x, batched)
     volume = jnp.prod(hi - lo)
     y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (n,)))
     return estimate_iid(y, bad)
-
-
-def check_proposal(proposal: Any, name: str = "proposal") -> Any:
-    if not (callable(getattr(proposal, "sample", None)) and callable(getattr(proposal, "pdf", None))):
-        raise TypeError(
-            f"`{name}` must have methods sample(key, n) -> (x, pdf) and pdf(x), "
-            f"got {type(proposal).__name__}."
-        )
-    return proposal
 
 
 def importance(

@@ -9,7 +9,9 @@ import jax
 import jax.numpy as jnp
 
 from .. import _random
-from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
+from .._box import to_box
+from .._checks import check_bounds, check_callable, check_count, check_key
+from .._integrand import evaluate, ratio
 from ..stats import Estimate, estimate_iid, moments
 
 
@@ -75,7 +77,7 @@ def control_variate(
     lo, hi = check_bounds(lo, hi)
     n = check_count(n, minimum=4)
     u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
-    x = lo + (hi - lo) * u
+    x = to_box(u, lo, hi)
     fx = evaluate(f, x, batched)
     gx = evaluate(g, x, batched, name="g")
     if gx.shape[1:] not in ((), fx.shape[1:]):
@@ -154,7 +156,7 @@ def antithetic(
         raise ValueError(f"`n` must be even (n/2 antithetic pairs), got {n}.")
     pairs = n // 2
     u = _random.uniform(key, (pairs,) + lo.shape, lo.dtype)
-    x = lo + (hi - lo) * u
+    x = to_box(u, lo, hi)
     x = jnp.concatenate([x, lo + hi - x])
     fx = evaluate(f, x, batched)
     volume = jnp.prod(hi - lo)

@@ -32,18 +32,26 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from .. import _random
+from .._box import to_box
 from .._checks import (
     check_bounds,
     check_callable,
     check_choice,
     check_count,
     check_key,
-    evaluate,
     is_concrete,
-    ratio,
 )
-from ..stats import Estimate, Moments, estimate_from_moments, merge, merge_all
+from .._integrand import evaluate, ratio
+from .._points._registry import unit_points
+from ..stats import (
+    Estimate,
+    Moments,
+    block_moments,
+    estimate_from_moments,
+    merge,
+    merge_across_devices,
+    merge_all,
+)
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
@@ -51,7 +59,6 @@ ADAPT_ITERATIONS = 8  # VEGAS rounds that train the Grid for method="adaptive"
 BLOCK = 1 << 14  # samples per block; power of two so Sobol' blocks are (t, m, s)-nets
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
 MAX_N = 1 << 30  # default budget when only a tolerance is given
-_LANE = 128  # inner width of the two-level reduction inside a block
 _QMC_MAX_DIM = 12  # measured in benchmarks/convergence.py up to d = 8; beyond, plain MC
 
 
@@ -264,40 +271,11 @@ def _plan(method: str, budget: int, chunk: int, devices: int, d: int) -> _Plan:
 def _unit_points(method: str, plan: _Plan, key: jax.Array, d: int, dtype) -> jax.Array:
     """The block's points on the unit cube, shape `(block, d)`."""
     if method == "plain":
-        return _random.uniform(key, (plan.block, d), dtype)
-    from .. import points
-
-    if method == "qmc":
-        return points.sobol(plan.block, d, key=key).astype(dtype)
-    return points.stratified(key, plan.strata).astype(dtype)
-
-
-def _block_moments(y: jax.Array, valid: jax.Array) -> Moments:
-    """Moments of one block by a two-level reduction (lanes of 128, then a tree)."""
-    block = y.shape[0]
-    lane = min(_LANE, block)
-    rows = -(-block // lane)
-    if rows * lane != block:  # e.g. a jittered grid of 25^3 points: pad with invalid rows
-        pad = rows * lane - block
-        y = jnp.concatenate([y, jnp.zeros((pad,) + y.shape[1:], y.dtype)])
-        valid = jnp.concatenate([valid, jnp.zeros(pad, bool)])
-    y2 = y.reshape((rows, lane) + y.shape[1:])
-    v2 = valid.reshape(rows, lane)
-    mask = v2.reshape(v2.shape + (1,) * (y.ndim - 1)).astype(y.dtype)
-    count = jnp.sum(v2, axis=1).astype(y.dtype)
-    safe = jnp.maximum(count, 1).reshape((rows,) + (1,) * (y.ndim - 1))
-    mean = jnp.sum(y2 * mask, axis=1) / safe
-    m2 = jnp.sum(mask * (y2 - mean[:, None]) ** 2, axis=1)
-    return merge_all(Moments(count, mean, m2))
-
-
-def _device_merge(m: Moments, axes: tuple[str, ...]) -> Moments:
-    """Merge per-device moments across the mesh with collectives."""
-    count = jax.lax.psum(m.count, axes)
-    safe = jnp.where(count > 0, count, 1)
-    mean = jax.lax.psum(m.count * m.mean, axes) / safe
-    m2 = jax.lax.psum(m.m2 + m.count * (m.mean - mean) ** 2, axes)  # counts are scalars here
-    return Moments(count, mean, m2)
+        return unit_points("uniform", key, plan.block, d, dtype=dtype)
+    # Drawn in the default float dtype, then cast: this keeps the numbers of earlier
+    # versions for float32 bounds under x64 (a float32 Sobol' draw truncates, not rounds).
+    name = "sobol" if method == "qmc" else "stratified"
+    return unit_points(name, key, plan.block, d, counts=plan.strata).astype(dtype)
 
 
 @partial(
@@ -310,18 +288,18 @@ def _integrate(key, proposal, lo, hi, rtol, atol, *, f, method, plan, mesh, tole
     per_sample = method in ("plain", "adaptive")
     axes = tuple(mesh.axis_names)
 
-    def block_moments(b):
+    def moments_of_block(b):
         if method == "adaptive":
             x, px = proposal.sample(jax.random.fold_in(key, b), plan.block)
         else:
             u = _unit_points(method, plan, jax.random.fold_in(key, b), d, dtype)
-            x = lo + (hi - lo) * (u if lo.ndim else u[:, 0])
+            x = to_box(u if lo.ndim else u[:, 0], lo, hi)
             px = jnp.broadcast_to(1.0 / volume, (plan.block,))
         fx = evaluate(f, x, batched)
         y, bad = ratio(fx, px)
         index = b * plan.block + jnp.arange(plan.block)
         valid = index < plan.budget
-        m = _block_moments(y, valid)
+        m = block_moments(y, valid)
         if not per_sample:
             # The block is one randomisation: one observation, its mean.
             m = Moments(jnp.where(m.count > 0, 1.0, 0.0).astype(dtype), m.mean, jnp.zeros_like(m.m2))
@@ -334,18 +312,18 @@ def _integrate(key, proposal, lo, hi, rtol, atol, *, f, method, plan, mesh, tole
         device = 0 if single else jax.lax.axis_index(axes)
         first = (t * mesh.devices.size + device) * plan.per_device
         blocks = first + jnp.arange(plan.per_device, dtype=jnp.int32)
-        m, evaluations, bad = jax.vmap(block_moments)(blocks)
+        m, evaluations, bad = jax.vmap(moments_of_block)(blocks)
         m = merge_all(m)
         evaluations, bad = jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
         if single:
             return m, evaluations, bad
-        return _device_merge(m, axes), jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
+        return merge_across_devices(m, axes), jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
 
     # One device needs no collectives; skipping shard_map there keeps compiles short.
     sharded = local if single else jax.shard_map(
         local, mesh=mesh, in_specs=PartitionSpec(), out_specs=PartitionSpec()
     )
-    out_shape = jax.eval_shape(lambda: block_moments(jnp.int32(0))[0].mean).shape
+    out_shape = jax.eval_shape(lambda: moments_of_block(jnp.int32(0))[0].mean).shape
     start = Moments(
         jnp.zeros((), dtype), jnp.zeros(out_shape, dtype), jnp.zeros(out_shape, dtype)
     )

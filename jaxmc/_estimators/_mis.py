@@ -19,15 +19,12 @@ from .._checks import (
     check_choice,
     check_count,
     check_key,
-    evaluate,
     is_concrete,
-    ratio,
 )
+from .._integrand import evaluate, ratio
+from ..proposals import check_proposal
 from ..stats import Estimate, estimate_iid, moments
-from ._basic import check_proposal
-
-
-HEURISTICS = ("balance", "power")
+from ._mis_weights import HEURISTICS, mis_weights, safe_log
 
 
 def _check_proposals(proposals: Any) -> list:
@@ -50,12 +47,6 @@ def _check_beta(beta: Any, heuristic: str) -> Any:
     return beta
 
 
-def _log(p: jax.Array) -> jax.Array:
-    """log p with log 0 = -inf and a finite (zero) gradient there."""
-    pos = p > 0
-    return jnp.where(pos, jnp.log(jnp.where(pos, p, 1.0)), -jnp.inf)
-
-
 def _pdf_matrix(proposals: list, x: jax.Array) -> jax.Array:
     """`P[l, i] = p_l(x_i)`, shape `(s, n)`."""
     n = x.shape[0]
@@ -69,20 +60,6 @@ def _pdf_matrix(proposals: list, x: jax.Array) -> jax.Array:
             )
         rows.append(p)
     return jnp.stack(rows)
-
-
-def _weights(scaled: jax.Array, heuristic: str, beta: Any) -> jax.Array:
-    """Heuristic weights from `scaled[l, i] = c_l p_l(x_i)` (or `n_l p_l`), shape `(s, n)`."""
-    if heuristic == "balance":
-        total = jnp.sum(scaled, axis=0)
-        return scaled / jnp.where(total > 0, total, 1.0)
-    # Power heuristic in log space: w_k = exp(β log q_k - logsumexp_l β log q_l).
-    logs = beta * _log(scaled)
-    top = jnp.max(logs, axis=0)
-    top = jnp.where(jnp.isfinite(top), top, 0.0)
-    e = jnp.exp(logs - top)
-    total = jnp.sum(e, axis=0)
-    return e / jnp.where(total > 0, total, 1.0)
 
 
 def mis(
@@ -180,7 +157,7 @@ def mis(
             y, bad = ratio(fk, denom)
         else:
             sc = scaled[:, sl].at[k].set(nk * own[k])
-            w = _weights(sc, heuristic, beta)[k]
+            w = mis_weights(sc, heuristic, beta, technique=k)
             y, bad = ratio(fk * w.reshape(w.shape + (1,) * (fk.ndim - 1)), own[k])
         mom = moments(y)
         mean = mean + mom.mean
@@ -261,7 +238,7 @@ def mis_one_sample(
     beta = _check_beta(beta, heuristic)
 
     key_choice, key_sample = jax.random.split(key)
-    choice = jax.random.categorical(key_choice, _log(c), shape=(n,))
+    choice = jax.random.categorical(key_choice, safe_log(c), shape=(n,))
     keys = jax.random.split(key_sample, s)
     cand = []
     for k, q in enumerate(proposals):
@@ -285,7 +262,7 @@ def mis_one_sample(
     if heuristic == "balance":
         y, bad = ratio(fx, jnp.sum(scaled, axis=0))
     else:
-        w = _weights(scaled, heuristic, beta)[choice, jnp.arange(n)]
+        w = mis_weights(scaled, heuristic, beta)[choice, jnp.arange(n)]
         chosen = scaled[choice, jnp.arange(n)]
         y, bad = ratio(fx * w.reshape(w.shape + (1,) * (fx.ndim - 1)), chosen)
     return estimate_iid(y, bad)

@@ -11,8 +11,11 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import betainc
 
-from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
-from ..stats import Estimate, _check_level
+from .._box import to_box
+from .._checks import check_bounds, check_callable, check_count, check_key
+from .._integrand import evaluate, ratio
+from .._points._registry import unit_points
+from ..stats import Estimate, check_level
 
 
 POINT_SETS = ("sobol", "halton", "lattice", "latin_hypercube", "stratified")
@@ -57,7 +60,7 @@ class QMCEstimate(Estimate):
 
     def t_interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
         r"""$\mathrm{mean} \pm t_{R-1,(1+\ell)/2}\,\mathrm{stderr}$ (infinite for one replica)."""
-        _check_level(level)
+        check_level(level)
         if self.replicas < 2:
             inf = jnp.full_like(self.mean, jnp.inf)
             return self.mean - inf, self.mean + inf
@@ -88,18 +91,8 @@ def _point_generator(points: Any, n: int, d: int) -> Callable[[jax.Array], jax.A
             f"`points` must be one of {POINT_SETS} or a callable (key, n, d) -> (n, d), "
             f"got {points!r}."
         )
-    from .. import points as pts  # imported here: the point sets module imports estimators' peers
-
-    if points == "sobol":
-        return lambda k: pts.sobol(n, d, key=k)
-    if points == "halton":
-        return lambda k: pts.halton(n, d, key=k)
-    if points == "lattice":
-        return lambda k: pts.lattice(n, d, key=k)
-    if points == "latin_hypercube":
-        return lambda k: pts.latin_hypercube(k, n, d)
-    counts = _grid_counts(n, d)
-    return lambda k: pts.stratified(k, counts)
+    counts = _grid_counts(n, d) if points == "stratified" else None
+    return lambda k: unit_points(points, k, n, d, counts=counts)
 
 
 def randomized_qmc(
@@ -169,7 +162,7 @@ def randomized_qmc(
     u = jnp.asarray(u, dtype=lo.dtype)
     if lo.ndim == 0:
         u = u[..., 0]
-    x = lo + (hi - lo) * u.reshape((replicas * n,) + lo.shape)
+    x = to_box(u.reshape((replicas * n,) + lo.shape), lo, hi)
     fx = evaluate(f, x, batched)
     volume = jnp.prod(hi - lo)
     y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (replicas * n,)))

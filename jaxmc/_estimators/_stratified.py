@@ -10,35 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _random
-from .._checks import check_bounds, check_callable, check_count, check_key, evaluate, ratio
+from .._box import to_box
+from .._checks import check_bounds, check_callable, check_count, check_key
+from .._integrand import evaluate, ratio
+from .._points._random_sets import check_counts
 from ..stats import Estimate
-
-
-def check_counts(counts: Any, ndim: int, d: int, name: str = "counts") -> tuple[int, ...]:
-    """Strata per axis: a tuple of `d` positive static ints (an int for scalar bounds)."""
-    if ndim == 0:
-        if isinstance(counts, (tuple, list)):
-            if len(counts) != 1:
-                raise ValueError(
-                    f"`{name}` must be an int (or a 1-tuple) for scalar bounds, got {counts!r}."
-                )
-            counts = counts[0]
-        return (check_count(counts, name),)
-    if not isinstance(counts, (tuple, list)):
-        if d == 1:
-            try:
-                return (check_count(counts, name),)
-            except TypeError:
-                pass
-        raise TypeError(
-            f"`{name}` must be a tuple of {d} ints (strata per axis) for bounds of shape ({d},), "
-            f"got {type(counts).__name__} {counts!r}."
-        )
-    if len(counts) != d:
-        raise ValueError(
-            f"`{name}` must have one entry per dimension ({d}), got {len(counts)}: {counts!r}."
-        )
-    return tuple(check_count(c, f"{name}[{j}]") for j, c in enumerate(counts))
 
 
 def snake_order(counts: tuple[int, ...]) -> np.ndarray:
@@ -136,7 +112,7 @@ def stratified(
     f = check_callable(f)
     lo, hi = check_bounds(lo, hi)
     d = 1 if lo.ndim == 0 else lo.shape[0]
-    counts = check_counts(counts, lo.ndim, d)
+    counts = check_counts(counts, d, scalar=lo.ndim == 0)
     m = check_count(per_stratum, "per_stratum")
     if not isinstance(batched, bool):
         raise TypeError(f"`batched` must be a bool, got {type(batched).__name__}.")
@@ -148,7 +124,7 @@ def stratified(
     unit = (corner[:, None, :] + u) * cell_size  # (M, m, d) in [0, 1)
     if lo.ndim == 0:
         unit = unit[..., 0]
-    x = lo + (hi - lo) * unit
+    x = to_box(unit, lo, hi)
     fx = evaluate(f, x.reshape((cells * m,) + lo.shape), batched)
     volume = jnp.prod(hi - lo)
     y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (cells * m,)))

@@ -16,15 +16,15 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optax
 import optimistix as optx
 
 from .. import _random
-from .._checks import check_callable, check_choice, check_count, check_key, evaluate
-from ..proposals import Flow
-
-
-OBJECTIVES = ("variance", "chi2", "kl", "reverse_kl")
+from .._box import log_volume, to_box
+from .._checks import check_callable, check_choice, check_count, check_key
+from .._integrand import evaluate
+from ..proposals import check_proposal, weighted_draw
+from ._objectives import OBJECTIVES, log_abs, objective_loss
+from ._solvers import check_solver, minimise, run_steps, split_parameters
 
 
 class FitResult(eqx.Module):
@@ -47,77 +47,6 @@ class FitResult(eqx.Module):
     steps: jax.Array
     result: optx.RESULTS
     losses: jax.Array | None = None
-
-
-def parameter_spec(proposal: Any) -> Any:
-    """The filter spec `fit` optimises: inexact arrays, except the box bounds `lo`/`hi`."""
-
-    def is_param(path, leaf):
-        if not eqx.is_inexact_array(leaf):
-            return False
-        name = getattr(path[-1], "name", None) if path else None
-        return name not in ("lo", "hi")
-
-    return jax.tree_util.tree_map_with_path(is_param, proposal)
-
-
-def _draw(proposal: Any, key: jax.Array, n: int):
-    draw = getattr(proposal, "_draw", None)
-    if draw is not None:
-        return draw(key, n)
-    x, pdf = proposal.sample(key, n)
-    log_p = jnp.log(pdf)
-    return x, log_p, jnp.full((n,), 1.0 / n, log_p.dtype)
-
-
-def _log_abs(fx: jax.Array) -> jax.Array:
-    """$\\log |f|$ per sample (the Euclidean norm for array-valued `f`), safe at 0."""
-    fx = jnp.reshape(fx, (fx.shape[0], -1))
-    sq = jnp.sum(fx**2, axis=-1)
-    ok = jnp.isfinite(sq) & (sq > 0)
-    return jnp.where(ok, 0.5 * jnp.log(jnp.where(ok, sq, 1.0)), -jnp.inf)
-
-
-def _wlse(a: jax.Array, w: jax.Array) -> jax.Array:
-    """$\\log \\sum_i w_i e^{a_i}$ with $-\\infty$ terms allowed."""
-    return jax.nn.logsumexp(a, b=w)
-
-
-def _objective(objective: str, logf, log_p, w, log_q=None):
-    r"""The objective from per-sample $\log|f|$, $\log p_\theta$, weights and optional $\log q$.
-
-    Without `log_q` the samples are reparameterised draws from $p_\theta$ itself
-    ($\sum_i w_i g(x_i) \approx E_p[g]$); with `log_q` they were drawn from a
-    frozen density $q$, and $E_p[g] = E_q[g\,p/q]$.
-    """
-    if log_q is None:
-        log_q = log_p
-        rev_w = w
-    else:
-        rev_w = w * jnp.exp(log_p - log_q)
-    if objective in ("variance", "chi2"):
-        # log E_q[f^2 / (p q)] = log of the second moment of f/p.
-        m2 = _wlse(2 * logf - log_p - log_q, w)
-        if objective == "variance":
-            return m2
-        log_i = _wlse(logf - log_q, w)
-        return m2 - 2 * log_i
-    if objective == "kl":
-        # D(p_f || p) with p_f = |f|/I, samples weighted by |f|/q (frozen).
-        lw = jax.lax.stop_gradient(logf - log_q)
-        log_i = jax.nn.logsumexp(lw, b=w)
-        # A batch where f is zero at every sample carries no information: no loss, no gradient.
-        seen = jnp.isfinite(log_i)
-        log_i = jnp.where(seen, log_i, 0.0)
-        nw = jnp.where(seen, w * jnp.exp(lw - log_i), 0.0)
-        safe_logf = jnp.where(nw > 0, logf, 0.0)
-        safe_logp = jnp.where(nw > 0, log_p, 0.0)
-        return jnp.sum(nw * (safe_logf - log_i - safe_logp))
-    # reverse_kl: D(p || p_f) = E_p[log p - log|f|] + log I.
-    floor = jax.lax.stop_gradient(jnp.max(logf)) - 70.0
-    lf = jnp.maximum(logf, floor)
-    log_i = jax.lax.stop_gradient(_wlse(logf - log_q, w))
-    return jnp.sum(rev_w * (log_p - lf)) + log_i
 
 
 def _check_defensive(defensive) -> float:
@@ -144,113 +73,17 @@ def _defensive_draw(prop, key, n: int, n_def: int, eps: float):
     $\sum_i w_i g(x_i)/m(x_i)$ estimates $\int g$ (balance-heuristic MIS).
     """
     key_p, key_u = jax.random.split(key)
-    x_p, _, w_p = _draw(prop, key_p, n - n_def)
+    x_p, _, w_p = weighted_draw(prop, key_p, n - n_def)
     lo, hi = jnp.asarray(prop.lo), jnp.asarray(prop.hi)
     u = _random.uniform(key_u, (n_def,) + lo.shape, lo.dtype)
-    x_u = lo + (hi - lo) * u
+    x_u = to_box(u, lo, hi)
     x = jnp.concatenate([x_p, x_u], axis=0)
     log_p = prop.log_pdf(x)
-    log_vol = jnp.sum(jnp.log(hi - lo))
+    log_vol = log_volume(lo, hi)
     log_m = jnp.logaddexp(jnp.log1p(-eps) + log_p, jnp.log(eps) - log_vol)
     w = jnp.concatenate([(1 - eps) * w_p, jnp.full((n_def,), eps / n_def, w_p.dtype)])
     return x, log_p, log_m, w
 
-
-# Above this many parameters the default is L-BFGS: BFGS keeps a dense inverse Hessian
-# (~10^4 parameters would need ~10^8 entries).
-_DENSE_BFGS_MAX = 2000
-# Flows' default, as in neural importance sampling (Müller et al. 2019): Adam on fresh
-# samples at every step, for a fixed number of steps.
-_FLOW_LEARNING_RATE = 3e-3
-
-
-def _has_flow(proposal) -> bool:
-    """Whether `proposal` is, or contains (e.g. in a `Mixture`), a `Flow`."""
-    is_flow = lambda node: isinstance(node, Flow)
-    return any(is_flow(n) for n in jax.tree_util.tree_leaves(proposal, is_leaf=is_flow))
-
-
-def _default_solver(proposal, params):
-    if _has_flow(proposal):
-        return optx.OptaxMinimiser(optax.adam(_FLOW_LEARNING_RATE), rtol=0.0, atol=0.0)
-    size = sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
-    if size > _DENSE_BFGS_MAX:
-        return optx.LBFGS(rtol=1e-5, atol=1e-5)
-    return optx.BFGS(rtol=1e-5, atol=1e-5)
-
-
-def _check_solver(solver, proposal, params):
-    if solver is None:
-        return _default_solver(proposal, params)
-    if not isinstance(solver, optx.AbstractMinimiser):
-        raise TypeError(
-            f"`solver` must be an optimistix.AbstractMinimiser (e.g. optimistix.BFGS), "
-            f"got {type(solver).__name__}."
-        )
-    return solver
-
-
-def _split(proposal, filter_spec):
-    spec = parameter_spec(proposal) if filter_spec is None else filter_spec
-    params, static = eqx.partition(proposal, spec)
-    if not jax.tree_util.tree_leaves(params):
-        raise ValueError(
-            f"`proposal` ({type(proposal).__name__}) has no parameters to fit "
-            "(no inexact-array leaves besides lo/hi)."
-        )
-    return params, static
-
-
-def _check_proposal(proposal):
-    if not (
-        callable(getattr(proposal, "sample", None)) and callable(getattr(proposal, "log_pdf", None))
-    ):
-        raise TypeError(
-            "`proposal` must have sample(key, n) -> (x, pdf) and log_pdf(x), got "
-            f"{type(proposal).__name__}."
-        )
-    return proposal
-
-
-def _minimise(loss, solver, params, args, max_steps, throw=False):
-    sol = optx.minimise(loss, solver, params, args, max_steps=max_steps, throw=throw)
-    return sol.value, sol.result, sol.stats["num_steps"]
-
-
-def _run_steps(fn_args, loss, solver, params, max_steps, steps_per_batch=1):
-    """`max_steps` solver steps, with fresh `args` every `steps_per_batch` steps.
-
-    `fn_args(batch, params) -> args` draws a batch's base randomness (from a key
-    folded with the batch index) or its frozen samples (from the current
-    proposal); the batch then serves `steps_per_batch` consecutive steps, so an
-    expensive integrand is evaluated once per batch. A step whose loss or new
-    parameters are not finite is skipped. Returns the parameters and the loss at
-    every step.
-    """
-    aux_fn = lambda y, args: (loss(y, args), None)
-    args0 = fn_args(0, params)
-    f_struct = jax.eval_shape(lambda: loss(params, args0))
-    state = solver.init(aux_fn, params, args0, {}, f_struct, None, frozenset())
-
-    def step(carry, _, args):
-        y, st = carry
-        value = loss(y, args)
-        y_new, st_new, _ = solver.step(aux_fn, y, args, {}, st, frozenset())
-        # A step that went non-finite (a degenerate batch, an overflow) is skipped: one
-        # NaN in the parameters would otherwise end the fit for good.
-        ok = jnp.isfinite(value) & jnp.all(
-            jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree_util.tree_leaves(y_new)])
-        )
-        keep = lambda new, old: jnp.where(ok, new, old)
-        return (jax.tree.map(keep, y_new, y), jax.tree.map(keep, st_new, st)), value
-
-    def batch(carry, b):
-        args = fn_args(b, carry[0])
-        return jax.lax.scan(lambda c, i: step(c, i, args), carry, None, length=steps_per_batch)
-
-    batches = max_steps // steps_per_batch
-    (params, _), losses = jax.lax.scan(batch, (params, state), jnp.arange(batches))
-    return params, jnp.reshape(losses, (max_steps,))
 
 
 def fit(
@@ -361,13 +194,13 @@ def fit(
     """
     key = check_key(key)
     f = check_callable(f)
-    proposal = _check_proposal(proposal)
+    proposal = check_proposal(proposal, methods=("sample", "log_pdf"))
     n = check_count(n)
     max_steps = check_count(max_steps, "max_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
-    params, static = _split(proposal, filter_spec)
+    params, static = split_parameters(proposal, filter_spec)
     default_solver = solver is None
-    solver = _check_solver(solver, proposal, params)
+    solver = check_solver(solver, proposal, params)
     if resample is None:
         # A stochastic default (the flows' Adam) gets fresh samples at every step, unless
         # the caller asked to fit on one reused batch.
@@ -390,10 +223,10 @@ def fit(
     def draw_frozen(k, p):
         prop = eqx.combine(jax.lax.stop_gradient(p), static)
         if n_def == 0:
-            x, log_q, w = _draw(prop, k, n)
+            x, log_q, w = weighted_draw(prop, k, n)
         else:
             x, _, log_q, w = _defensive_draw(prop, k, n, n_def, defensive)
-        logf = _log_abs(evaluate(f, x, batched))
+        logf = log_abs(evaluate(f, x, batched))
         return x, jax.lax.stop_gradient(logf), jax.lax.stop_gradient(log_q), w
 
     if frozen:
@@ -401,7 +234,7 @@ def fit(
         def loss(p, args):
             x, logf, log_q, w = args
             log_p = eqx.combine(p, static).log_pdf(x)
-            return _objective(objective, logf, log_p, w, log_q)
+            return objective_loss(objective, logf, log_p, w, log_q)
 
         if resample:
             make_args = lambda i, p: draw_frozen(jax.random.fold_in(key, i), p)
@@ -412,18 +245,18 @@ def fit(
         def loss(p, k):
             prop = eqx.combine(p, static)
             if n_def == 0:
-                x, log_p, w = _draw(prop, k, n)
-                logf = _log_abs(evaluate(f, x, batched))
-                return _objective(objective, logf, log_p, w)
+                x, log_p, w = weighted_draw(prop, k, n)
+                logf = log_abs(evaluate(f, x, batched))
+                return objective_loss(objective, logf, log_p, w)
             x, log_p, log_m, w = _defensive_draw(prop, k, n, n_def, defensive)
-            logf = _log_abs(evaluate(f, x, batched))
-            return _objective(objective, logf, log_p, w, log_m)
+            logf = log_abs(evaluate(f, x, batched))
+            return objective_loss(objective, logf, log_p, w, log_m)
 
         make_args = lambda i, p: jax.random.fold_in(key, i)
         args = key
 
     if resample:
-        params, losses = _run_steps(make_args, loss, solver, params, max_steps, steps_per_batch)
+        params, losses = run_steps(make_args, loss, solver, params, max_steps, steps_per_batch)
         final = loss(params, make_args(max_steps // steps_per_batch - 1, params))
         return FitResult(
             proposal=eqx.combine(params, static),
@@ -432,7 +265,7 @@ def fit(
             result=optx.RESULTS.successful,
             losses=losses,
         )
-    params, result, steps = _minimise(loss, solver, params, args, max_steps)
+    params, result, steps = minimise(loss, solver, params, args, max_steps)
     return FitResult(
         proposal=eqx.combine(params, static),
         loss=loss(params, args),
@@ -470,7 +303,7 @@ def fit_on_samples(
 
     **Returns:** a `FitResult`.
     """
-    proposal = _check_proposal(proposal)
+    proposal = check_proposal(proposal, methods=("sample", "log_pdf"))
     objective = check_choice(objective, "objective", OBJECTIVES)
     max_steps = check_count(max_steps, "max_steps")
     x = jnp.asarray(x)
@@ -485,13 +318,13 @@ def fit_on_samples(
     w = jnp.full((n,), 1.0 / n, log_q.dtype) if weights is None else jnp.asarray(weights)
     if w.shape != (n,):
         raise ValueError(f"`weights` must have shape ({n},), got {w.shape}.")
-    params, static = _split(proposal, filter_spec)
-    solver = _check_solver(solver, proposal, params)
-    args = (x, _log_abs(fx), log_q, w)
+    params, static = split_parameters(proposal, filter_spec)
+    solver = check_solver(solver, proposal, params)
+    args = (x, log_abs(fx), log_q, w)
 
     def loss(p, args):
         xs, logf, lq, ws = args
-        return _objective(objective, logf, eqx.combine(p, static).log_pdf(xs), ws, lq)
+        return objective_loss(objective, logf, eqx.combine(p, static).log_pdf(xs), ws, lq)
 
-    params, result, steps = _minimise(loss, solver, params, args, max_steps)
+    params, result, steps = minimise(loss, solver, params, args, max_steps)
     return FitResult(eqx.combine(params, static), loss(params, args), steps, result)

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 
 from .. import warps
 from .._checks import check_count, check_key
+from .._estimators._mis_weights import mis_weights
 from . import _brdf
 from ._math import dot, safe_div, to_world
 from ._sampling import POINT_SETS, point_set
@@ -94,14 +95,6 @@ class _Shading:
         return self.direction_technique(wi, self.brdf_pdf(wi))
 
 
-def _heuristic(p_self, p_other, beta):
-    if beta == 1:
-        return safe_div(p_self, p_self + p_other)
-    # ratio form: no overflow for the large pdfs of tiny lights and sharp lobes
-    r = safe_div(p_other, p_self)
-    return jnp.where(p_self > 0, 1.0 / (1.0 + r**beta), 0.0)
-
-
 def _direct(shading: _Shading, strategy: str, ua, ub):
     """Reflected direct light for one camera sample; `ua`, `ub` are `(2,)` (or `(2, 2)`) points."""
     if strategy == "light":
@@ -111,11 +104,16 @@ def _direct(shading: _Shading, strategy: str, ua, ub):
         f, _, p_b = shading.brdf_technique(ua)
         return safe_div(f, p_b)
     if strategy.startswith(("mis_balance", "mis_power")):
-        beta = 1 if strategy.startswith("mis_balance") else 2
+        heuristic = "balance" if strategy.startswith("mis_balance") else "power"
         f_l, p_ll, p_lb = shading.light_technique(ua)
         f_b, p_bl, p_bb = shading.brdf_technique(ub)
-        light = _heuristic(p_ll, p_lb, beta) * safe_div(f_l, p_ll)
-        brdf = _heuristic(p_bb, p_bl, beta) * safe_div(f_b, p_bb)
+
+        def weight(pdfs):
+            # the first technique's; power heuristic in ratio form with an int beta (p * p)
+            return mis_weights(pdfs, heuristic, 2, form="ratio", technique=0)
+
+        light = weight((p_ll, p_lb)) * safe_div(f_l, p_ll)
+        brdf = weight((p_bb, p_bl)) * safe_div(f_b, p_bb)
         if strategy.endswith(_PARTS):
             return jnp.stack([light, brdf])
         return light + brdf

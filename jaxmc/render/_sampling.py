@@ -7,14 +7,15 @@ from __future__ import annotations
 
 import math
 
-import jax
 import jax.numpy as jnp
 
-from .. import points as _points
+from .._points._registry import unit_points
 from ._math import safe_sqrt
 
 
 POINT_SETS = ("uniform", "stratified", "latin_hypercube", "halton")
+# The renderer's "uniform" has always drawn i.i.d. points from `jax.random`'s own stream.
+_REGISTRY_NAMES = {"uniform": "jax_random_uniform"}
 
 
 def grid_counts(n: int) -> tuple[int, int]:
@@ -27,15 +28,10 @@ def grid_counts(n: int) -> tuple[int, int]:
 
 def point_set(name: str, key, n: int):
     """`n` points on $[0,1)^2$ from the named pattern, randomised by `key`."""
-    if name == "uniform":
-        return jax.random.uniform(key, (n, 2))
-    if name == "stratified":
-        return _points.stratified(key, grid_counts(n))
-    if name == "latin_hypercube":
-        return _points.latin_hypercube(key, n, 2)
-    if name == "halton":
-        return _points.halton(n, 2, key=key)
-    raise ValueError(f"`points` must be one of {POINT_SETS}, got {name!r}.")
+    if name not in POINT_SETS:
+        raise ValueError(f"`points` must be one of {POINT_SETS}, got {name!r}.")
+    counts = grid_counts(n) if name == "stratified" else None
+    return unit_points(_REGISTRY_NAMES.get(name, name), key, n, 2, counts=counts)
 
 
 def cone_one_minus_cos_max(radius, distance):

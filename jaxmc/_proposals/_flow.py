@@ -30,9 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _random
-from ._checks import check_bounds, check_count, check_key
-from .proposals import AbstractProposal
+from .. import _random
+from .._box import log_volume, to_box
+from .._checks import check_bounds, check_count, check_key
+from ._base import AbstractUnitMap
 
 
 # Smallest bin width/height (as a fraction of [0, 1]) and knot derivative; they
@@ -200,7 +201,7 @@ def _default_layers(d: int) -> int:
     return 2 if d == 1 else max(4, 2 * math.ceil(math.log2(d)))
 
 
-class Flow(AbstractProposal):
+class Flow(AbstractUnitMap):
     r"""A normalising flow on the box `[lo, hi]`: coupling layers of monotone
     rational-quadratic splines on the unit cube (neural importance sampling).
 
@@ -307,9 +308,6 @@ class Flow(AbstractProposal):
             log_det = log_det + ld
         return z, log_det
 
-    def _log_volume(self) -> jax.Array:
-        return jnp.sum(jnp.log(self.hi - self.lo))
-
     def _as_points(self, x: jax.Array) -> tuple[jax.Array, tuple[int, ...]]:
         """Validate `x` and flatten it to `(m, d)`; returns it and the batch shape."""
         batch = self._batch_shape(x)
@@ -318,7 +316,7 @@ class Flow(AbstractProposal):
 
     def _to_box(self, z: jax.Array) -> jax.Array:
         lo, hi = jnp.atleast_1d(self.lo), jnp.atleast_1d(self.hi)
-        x = lo + (hi - lo) * z
+        x = to_box(z, lo, hi)
         return jnp.where(x < lo, lo, jnp.where(x > hi, hi, x))
 
     def _event(self, x: jax.Array, batch: tuple[int, ...]) -> jax.Array:
@@ -336,7 +334,7 @@ class Flow(AbstractProposal):
         u, batch = self._as_points(u)
         z, log_det = jax.vmap(self._forward_unit)(u)
         x = self._event(self._to_box(z), batch)
-        return x, (-log_det - self._log_volume()).reshape(batch)
+        return x, (-log_det - log_volume(self.lo, self.hi)).reshape(batch)
 
     @eqx.filter_jit
     def inverse(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -346,7 +344,7 @@ class Flow(AbstractProposal):
         inside = jnp.all((x >= lo) & (x <= hi), axis=-1)
         z = _clip01((x - lo) / (hi - lo))
         u, log_det = jax.vmap(self._inverse_unit)(z)
-        log_p = jnp.where(inside, log_det - self._log_volume(), -jnp.inf)
+        log_p = jnp.where(inside, log_det - log_volume(self.lo, self.hi), -jnp.inf)
         return self._event(u, batch), log_p.reshape(batch)
 
     # -- the proposal interface ------------------------------------------------------
@@ -359,11 +357,16 @@ class Flow(AbstractProposal):
         """
         key = check_key(key)
         n = check_count(n)
-        x, log_p, _ = self._draw(key, n)
+        x, log_p, _ = self.weighted_draw(key, n)
         return x, jnp.exp(log_p)
 
+    def map(self, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """`forward` on a batch `u` `(m, d)` of the unit cube: `x` `(m, d)` and `log_pdf(x)`."""
+        x, log_p = self.forward(u[:, 0] if self.event_ndim == 0 else u)
+        return jnp.reshape(x, (-1, self.dim)), log_p
+
     @eqx.filter_jit
-    def _draw(self, key, n):
+    def weighted_draw(self, key, n):
         # For `jaxmc.fit`: the reparameterised draw with its log density from the
         # forward pass, so no exp/log round trip underflows where p is tiny.
         key = check_key(key)

@@ -1,4 +1,4 @@
-r"""`adapt`'s rounds on a `Partition`: stratified sampling over its cells, then splitting.
+r"""The partition's adaptation rule: stratified sampling over its cells, then splitting.
 
 MISER-like recursive stratified sampling (Press & Farrar 1990): a round puts
 $n_c$ points uniformly in each leaf, estimates the integral and its variance
@@ -14,10 +14,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import evaluate, ratio
-from .._partition import _MAX_LEVEL, _slot_of_sample
-from ..proposals import Partition, _from_matrix
-from ..stats import Estimate
+from .. import _random
+from .._integrand import ratio
+from .._proposals._partition import MAX_LEVEL
+from ..proposals import Partition
+from ..stats import slot_of_sample, stratified_estimate
+from ._rule import AbstractAdaptation, Integrand, Samples
 
 
 # Share of a round's samples (beyond the floor of two per cell) spread evenly over the
@@ -34,7 +36,7 @@ _PRIOR_WEIGHT = 1.0
 _DEFENSIVE = 0.1
 
 
-def _allocate(weight: jax.Array, volume: jax.Array, count: jax.Array, n: int, beta) -> jax.Array:
+def allocate_to_cells(weight: jax.Array, volume: jax.Array, count: jax.Array, n: int, beta) -> jax.Array:
     r"""Samples per leaf slot: two each, a quarter of the rest evenly, the rest $\propto w_c^\beta$.
 
     `weight` is $V_c\sigma_c$ (Neyman allocation at `beta = 1`), `volume` $V_c$
@@ -102,14 +104,14 @@ def _coarse_neighbour_score(part: Partition, score: jax.Array, log_vol: jax.Arra
     width = jnp.ldexp(jnp.ones((m, d), dtype), -part.level)
     lower = jnp.ldexp(part.corner.astype(dtype), -part.level)
     centre = lower + 0.5 * width
-    eps = 2.0 ** -(_MAX_LEVEL + 2)
+    eps = 2.0 ** -(MAX_LEVEL + 2)
     eye = jnp.eye(d, dtype=dtype)
     # (m, 2d, d) probe points just outside each face.
     below = centre[:, None, :] - eye[None] * (0.5 * width[:, None, :] + eps)
     above = centre[:, None, :] + eye[None] * (0.5 * width[:, None, :] + eps)
     probe = jnp.concatenate([below, above], axis=1)
     inside = jnp.all((probe >= 0) & (probe < 1), axis=-1)
-    nb = part._locate(jnp.reshape(jnp.clip(probe, 0.0, 1.0 - eps), (-1, d))).reshape(m, 2 * d)
+    nb = part.locate(jnp.reshape(jnp.clip(probe, 0.0, 1.0 - eps), (-1, d))).reshape(m, 2 * d)
     own = jnp.broadcast_to((score - log_vol)[:, None], nb.shape)  # log sigma
     coarse = inside & jnp.isfinite(own) & (log_vol[nb] > log_vol[:, None] + math.log(4.0) - 1e-6)
     cand = jnp.where(coarse, log_vol[nb] + own, -jnp.inf)
@@ -135,7 +137,7 @@ def _split_pass(part: Partition, stats: jax.Array, u: jax.Array, y: jax.Array, n
     seg = lambda a: jax.ops.segment_sum(a, node, m)  # noqa: E731
     y2 = jnp.sum(y * y, axis=-1)
     cnt, s1, s2 = seg(jnp.ones_like(y2)), seg(y), seg(y2)
-    below = u < part._midpoint(node)  # (n, d)
+    below = u < part.midpoint(node)  # (n, d)
     lb = below.astype(dtype)
     cnt_lo, s1_lo, s2_lo = seg(lb), seg(lb[:, :, None] * y[:, None, :]), seg(lb * y2[:, None])
     cnt_hi = cnt[:, None] - cnt_lo
@@ -148,15 +150,15 @@ def _split_pass(part: Partition, stats: jax.Array, u: jax.Array, y: jax.Array, n
     drop = jnp.where(informed, sd[:, None] - 0.5 * (sd_lo + sd_hi), 0.0)
     axis = jnp.argmax(jnp.where(longest, drop, -jnp.inf), axis=-1).astype(jnp.int32)
 
-    log_vol = part._log_unit_volume()
-    is_leaf = part._is_leaf()
+    log_vol = part.log_unit_volume()
+    is_leaf = part.is_leaf()
     score = jnp.where(
         is_leaf & (sd > 0),
         log_vol + jnp.log(jnp.where(sd > 0, sd, 1.0)),
         -jnp.inf,
     )
     score = jnp.maximum(score, _coarse_neighbour_score(part, score, log_vol))
-    score = jnp.where(jnp.min(part.level, axis=-1) < _MAX_LEVEL, score, -jnp.inf)
+    score = jnp.where(jnp.min(part.level, axis=-1) < MAX_LEVEL, score, -jnp.inf)
     rank = jnp.zeros((m,), jnp.int32).at[jnp.argsort(-score)].set(jnp.arange(m, dtype=jnp.int32))
     split = jnp.isfinite(score) & (rank < part.max_cells - part.n_cells)
     first = jnp.where(split, part.size + 2 * rank, m)  # first child's index; m is dropped
@@ -187,11 +189,11 @@ def _split_pass(part: Partition, stats: jax.Array, u: jax.Array, y: jax.Array, n
     return grown, stats, node
 
 
-def _stratified_round(part: Partition, stats, raw, f, n: int, beta, passes: int, batched):
-    r"""One round on `part`: the stratified estimate, the grown partition and its statistics.
+def _stratified_round(part: Partition, stats, raw, integrand: Integrand, beta, passes: int):
+    r"""One round on `part`: the stratified estimate, the grown partition, its statistics, the samples.
 
     Leaf $c$ (volume $V_c$ of the box's $V$) gets $n_c$ of the `n` points
-    (`_allocate` with weights $V_c\sigma_c$ from `stats`), uniform in it, so
+    (`allocate_to_cells` with weights $V_c\sigma_c$ from `stats`), uniform in it, so
     with $y = V f$:
     $$\hat I = \sum_c V_c \bar y_c, \qquad
       \hat V = \sum_c V_c^2 s_c^2 / n_c$$
@@ -201,28 +203,23 @@ def _stratified_round(part: Partition, stats, raw, f, n: int, beta, passes: int,
     cells, $P_c \propto V_c\,\text{rms}_c$, mixed with $V_c$ at weight
     `_DEFENSIVE`.
     """
+    n = raw.shape[0]
     slots = part.max_cells
-    ids, count = part._leaves()
+    ids, count = part.leaves()
     valid = jnp.arange(slots) < count
-    vol = jnp.where(valid, jnp.exp(part._log_unit_volume()[ids]), 0.0)
-    counts = _allocate(vol * jnp.sqrt(stats[ids, 1]), vol, count, n, beta)
-    slot = _slot_of_sample(counts, n)
+    vol = jnp.where(valid, jnp.exp(part.log_unit_volume()[ids]), 0.0)
+    counts = allocate_to_cells(vol * jnp.sqrt(stats[ids, 1]), vol, count, n, beta)
+    slot = slot_of_sample(counts, n)
     node = ids[slot]
-    u = part._in_cells(node, raw)
-    fx = evaluate(f, _from_matrix(part, part._unit_to_box(u)), batched)
-    y, bad = ratio(fx, jnp.exp(-part._log_box_volume()))
-    cnt = counts.astype(y.dtype)
-    shape = (slots,) + (1,) * (y.ndim - 1)
-    seg = lambda a: jax.ops.segment_sum(a, slot, slots, indices_are_sorted=True)  # noqa: E731
-    mean_c = seg(y) / jnp.reshape(jnp.maximum(cnt, 1.0), shape)
-    var_c = seg((y - mean_c[slot]) ** 2) / jnp.reshape(jnp.maximum(cnt - 1.0, 1.0), shape)
-    v = jnp.reshape(vol, shape)
-    est = Estimate(
-        mean=jnp.sum(v * mean_c, axis=0),
-        variance=jnp.sum(v**2 * var_c / jnp.reshape(jnp.maximum(cnt, 1.0), shape), axis=0),
-        n=jnp.asarray(n, jnp.int32),
-        n_nonfinite=jnp.sum(bad, dtype=jnp.int32),
-    )
+    u = part.in_cells(node, raw)
+    x = part.unit_to_box(u)
+    x = x[:, 0] if part.event_ndim == 0 else x
+    fx = integrand(x)
+    log_q = -part.log_box_volume()
+    y, bad = ratio(fx, jnp.exp(log_q))
+    est, _ = stratified_estimate(y, slot, counts, vol, jnp.sum(bad, dtype=jnp.int32))
+    weights = vol[slot] / counts.astype(y.dtype)[slot]
+    samples = Samples(x, fx, jnp.broadcast_to(log_q, (n,)), weights)
 
     yk = jnp.reshape(y, (n, -1))
     part, stats, node = jax.lax.fori_loop(
@@ -234,11 +231,64 @@ def _stratified_round(part: Partition, stats, raw, f, n: int, beta, passes: int,
     cnt = seg(jnp.ones_like(y2))
     stats = _pool(stats, cnt, *_moments(cnt, seg(yk), seg(y2)))
 
-    is_leaf = part._is_leaf()
-    vol = jnp.where(is_leaf, jnp.exp(part._log_unit_volume()), 0.0)
+    is_leaf = part.is_leaf()
+    vol = jnp.where(is_leaf, jnp.exp(part.log_unit_volume()), 0.0)
     w = vol * jnp.sqrt(stats[:, 2])
     w_total = jnp.sum(w)
     mass = jnp.where(w_total > 0, (1 - _DEFENSIVE) * w / jnp.where(w_total > 0, w_total, 1.0), 0.0)
     mass = mass + jnp.where(w_total > 0, _DEFENSIVE, 1.0) * vol
     part = eqx.tree_at(lambda p: p.logits, part, jnp.log(jnp.where(is_leaf, mass, 1.0)))
-    return est, part, stats
+    return est, part, stats, samples
+
+
+class PartitionState(eqx.Module):
+    """The partition and each node's pooled `(weight, variance, mean square)` of $f$."""
+
+    partition: Partition
+    stats: jax.Array
+    n: int = eqx.field(static=True)  # points per round
+
+
+class PartitionGrowth(AbstractAdaptation):
+    r"""MISER-like growth of a `Partition` (Press & Farrar 1990), sampled stratified.
+
+    Each round puts two points in every leaf, a quarter of the rest evenly and
+    the rest $\propto (V_c\sigma_c)^\beta$ ($V_c$ the leaf's volume,
+    $\sigma_c$ the pooled standard deviation of $f$ in it; Neyman allocation
+    at $\beta = 1$); then `passes` times on the round's points, the leaves with
+    the largest $V_c\sigma_c$ (and coarse leaves next to them) are halved along
+    their longest edge, as many as `max_cells` allows, and the cell masses are
+    set to $\propto V_c \sqrt{\overline{f^2}}$. Needs rounds of at least
+    `4 * max_cells` points.
+    """
+
+    beta: float = 0.75
+    passes: int = eqx.field(static=True, default=4)
+
+    def check(self, proposal, n):
+        if not isinstance(proposal, Partition):
+            raise ValueError(
+                f"PartitionGrowth adapts a Partition proposal, got {type(proposal).__name__}."
+            )
+        if n < 4 * proposal.max_cells:
+            raise ValueError(
+                "A Partition needs `n_per_iteration` >= 4 * max_cells (two points per cell "
+                f"and as many to spare) = {4 * proposal.max_cells}, got {n}."
+            )
+
+    def init(self, key, proposal, n):
+        # Each node's pooled (weight, variance, mean square); equal to start.
+        stats = jnp.ones(proposal.logits.shape + (3,), proposal.lo.dtype).at[:, 0].set(0.0)
+        return PartitionState(proposal, stats, n)
+
+    def step(self, key, index, state, integrand: Integrand):
+        part = state.partition
+        n = state.n
+        raw = _random.uniform(jax.random.fold_in(key, index), (n, part.dim), part.lo.dtype)
+        est, part, stats, samples = _stratified_round(
+            part, state.stats, raw, integrand, self.beta, self.passes
+        )
+        return PartitionState(part, stats, n), est, samples
+
+    def proposal(self, state):
+        return state.partition

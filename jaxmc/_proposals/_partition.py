@@ -12,7 +12,7 @@ $h$, so partitions are for low dimensions.
 
 `jaxmc.fit.adapt` samples a partition stratified — $n_c$ points uniform in
 each leaf, $\hat I = \sum_c V_c \bar y_c$, $\hat V = \sum_c V_c^2 s_c^2/n_c$
-(§4.2) — and grows it between rounds (`_stratified_round`). Allocating
+(§4.2) — and grows it between rounds (the `PartitionGrowth` rule). Allocating
 $n_c \propto V_c\sigma_c$ (Neyman) gives a per-sample variance
 $(\sum_c V_c\sigma_c)^2$, so cells are split where $V_c\sigma_c$ is largest;
 on an indicator only cells on the boundary have $\sigma_c > 0$, and the error
@@ -26,14 +26,16 @@ import math
 import jax
 import jax.numpy as jnp
 
-from . import _random
-from ._checks import check_bounds, check_count, check_key
-from .proposals import AbstractProposal, _as_matrix, _from_matrix
+from .. import _random
+from .._box import as_vectors, to_box
+from .._checks import check_bounds, check_count, check_key
+from ..stats import slot_of_sample
+from ._base import AbstractProposal, _as_matrix, _from_matrix
 
 
 # Cells are dyadic: a cell's extent along an axis is 2^-level of the box's. Capped at
 # 2^-20, so a float32 point (2^-24 resolution) still tells a cell's halves apart.
-_MAX_LEVEL = 20
+MAX_LEVEL = 20
 
 
 class Partition(AbstractProposal):
@@ -89,45 +91,47 @@ class Partition(AbstractProposal):
     def max_cells(self) -> int:
         return (self.child.shape[0] + 1) // 2
 
-    def _is_leaf(self) -> jax.Array:
+    def is_leaf(self) -> jax.Array:
+        """Whether each node `(M,)` is a leaf (a cell of the partition) in use."""
         return (self.child < 0) & (jnp.arange(self.child.shape[0]) < self.size)
 
     @property
     def n_cells(self) -> jax.Array:
         """Number of leaves (cells) in use."""
-        return jnp.sum(self._is_leaf(), dtype=jnp.int32)
+        return jnp.sum(self.is_leaf(), dtype=jnp.int32)
 
-    def _log_unit_volume(self) -> jax.Array:
+    def log_unit_volume(self) -> jax.Array:
         """$\\log V_k$ of every node as a fraction of the box, `(M,)`."""
         return -math.log(2.0) * jnp.sum(self.level, axis=-1).astype(self.logits.dtype)
 
-    def _log_box_volume(self) -> jax.Array:
+    def log_box_volume(self) -> jax.Array:
+        """$\\log$ of the box's volume."""
         return jnp.sum(jnp.log(jnp.reshape(self.hi - self.lo, (self.dim,))))
 
-    def _log_mass(self) -> jax.Array:
+    def log_mass(self) -> jax.Array:
         """$\\log P_k$ of every node, `(M,)`: $-\\infty$ except at leaves."""
-        return jax.nn.log_softmax(jnp.where(self._is_leaf(), self.logits, -jnp.inf))
+        return jax.nn.log_softmax(jnp.where(self.is_leaf(), self.logits, -jnp.inf))
 
-    def _unit_to_box(self, u: jax.Array) -> jax.Array:
-        lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
-        return lo + u * (hi - lo)
+    def unit_to_box(self, u: jax.Array) -> jax.Array:
+        """Points of the unit cube `(n, d)` mapped onto the box."""
+        return to_box(u, *as_vectors(self.lo, self.hi))
 
-    def _in_cells(self, node: jax.Array, r: jax.Array) -> jax.Array:
+    def in_cells(self, node: jax.Array, r: jax.Array) -> jax.Array:
         """Points `r` `(n, d)` of the unit cube mapped into cells `node` `(n,)`, in unit coordinates."""
         return jnp.ldexp(self.corner[node].astype(r.dtype) + r, -self.level[node])
 
-    def _midpoint(self, node: jax.Array) -> jax.Array:
+    def midpoint(self, node: jax.Array) -> jax.Array:
         """The midpoints of cells `node` along every axis, unit coordinates, `(n, d)`."""
         return jnp.ldexp(
             (2 * self.corner[node] + 1).astype(self.logits.dtype), -(self.level[node] + 1)
         )
 
-    def _locate(self, u: jax.Array) -> jax.Array:
+    def locate(self, u: jax.Array) -> jax.Array:
         """The leaf containing each point `u` `(n, d)` of the unit cube, `(n,)`."""
 
         def descend(node):
             k = self.axis[node]
-            mid = jnp.take_along_axis(self._midpoint(node), k[:, None], axis=1)[:, 0]
+            mid = jnp.take_along_axis(self.midpoint(node), k[:, None], axis=1)[:, 0]
             below = jnp.take_along_axis(u, k[:, None], axis=1)[:, 0] < mid
             inner = self.child[node] >= 0
             return jnp.where(inner, self.child[node] + jnp.where(below, 0, 1), node)
@@ -137,9 +141,9 @@ class Partition(AbstractProposal):
 
     def log_pdf(self, x):
         xm, batch = _as_matrix(self, x)
-        lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
-        leaf = self._locate((xm - lo) / (hi - lo))
-        lp = self._log_mass()[leaf] - self._log_unit_volume()[leaf] - self._log_box_volume()
+        lo, hi = as_vectors(self.lo, self.hi)
+        leaf = self.locate((xm - lo) / (hi - lo))
+        lp = self.log_mass()[leaf] - self.log_unit_volume()[leaf] - self.log_box_volume()
         inside = jnp.all((xm >= lo) & (xm <= hi), axis=-1)
         return jnp.reshape(jnp.where(inside, lp, -jnp.inf), batch)
 
@@ -147,37 +151,37 @@ class Partition(AbstractProposal):
         key = check_key(key)
         n = check_count(n)
         k_cell, k_point = jax.random.split(key)
-        log_mass = self._log_mass()
+        log_mass = self.log_mass()
         cdf = jnp.cumsum(jnp.exp(log_mass))
         v = _random.uniform(k_cell, (n,), cdf.dtype) * cdf[-1]
         # side="right" skips cells of zero mass; the clip guards v rounding up to the total.
-        last_leaf = jnp.max(jnp.where(self._is_leaf(), jnp.arange(cdf.shape[0]), 0))
+        last_leaf = jnp.max(jnp.where(self.is_leaf(), jnp.arange(cdf.shape[0]), 0))
         node = jnp.minimum(jnp.searchsorted(cdf, v, side="right"), last_leaf)
-        u = self._in_cells(node, _random.uniform(k_point, (n, self.dim), self.lo.dtype))
-        lp = log_mass[node] - self._log_unit_volume()[node] - self._log_box_volume()
-        return _from_matrix(self, self._unit_to_box(u)), jnp.exp(lp)
+        u = self.in_cells(node, _random.uniform(k_point, (n, self.dim), self.lo.dtype))
+        lp = log_mass[node] - self.log_unit_volume()[node] - self.log_box_volume()
+        return _from_matrix(self, self.unit_to_box(u)), jnp.exp(lp)
 
-    def _leaves(self) -> tuple[jax.Array, jax.Array]:
+    def leaves(self) -> tuple[jax.Array, jax.Array]:
         """The leaves' node indices in increasing order, padded to `max_cells`, and their count."""
-        is_leaf = self._is_leaf()
+        is_leaf = self.is_leaf()
         (ids,) = jnp.nonzero(is_leaf, size=self.max_cells, fill_value=0)
         return ids.astype(jnp.int32), jnp.sum(is_leaf, dtype=jnp.int32)
 
-    def _draw(self, key, n):
+    def weighted_draw(self, key, n):
         r"""Stratified over the leaves, $n_c \approx n/L$ points each, weights $P_c/n_c$.
 
         `sum(w * g(x))` then depends on the masses exactly (so `fit` gets their
         gradients). With fewer than `n` cells every cell is visited.
         """
-        ids, count = self._leaves()
+        ids, count = self.leaves()
         j = jnp.arange(self.max_cells)
         counts = jnp.where(j < count, (j + 1) * n // count - j * n // count, 0)
-        node = ids[_slot_of_sample(counts, n)]
-        u = self._in_cells(node, _random.uniform(key, (n, self.dim), self.lo.dtype))
-        log_mass = self._log_mass()[node]
-        lp = log_mass - self._log_unit_volume()[node] - self._log_box_volume()
-        w = jnp.exp(log_mass) / counts[_slot_of_sample(counts, n)].astype(lp.dtype)
-        return _from_matrix(self, self._unit_to_box(u)), lp, w
+        node = ids[slot_of_sample(counts, n)]
+        u = self.in_cells(node, _random.uniform(key, (n, self.dim), self.lo.dtype))
+        log_mass = self.log_mass()[node]
+        lp = log_mass - self.log_unit_volume()[node] - self.log_box_volume()
+        w = jnp.exp(log_mass) / counts[slot_of_sample(counts, n)].astype(lp.dtype)
+        return _from_matrix(self, self.unit_to_box(u)), lp, w
 
     def cells(self) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
         """Every node's cell in box coordinates: `(lower, upper, mass, is_leaf)`.
@@ -187,12 +191,7 @@ class Partition(AbstractProposal):
         plotting).
         """
         dtype = self.lo.dtype
-        lower = self._unit_to_box(jnp.ldexp(self.corner.astype(dtype), -self.level))
-        upper = self._unit_to_box(jnp.ldexp((self.corner + 1).astype(dtype), -self.level))
-        return lower, upper, jnp.exp(self._log_mass()), self._is_leaf()
+        lower = self.unit_to_box(jnp.ldexp(self.corner.astype(dtype), -self.level))
+        upper = self.unit_to_box(jnp.ldexp((self.corner + 1).astype(dtype), -self.level))
+        return lower, upper, jnp.exp(self.log_mass()), self.is_leaf()
 
-
-def _slot_of_sample(counts: jax.Array, n: int) -> jax.Array:
-    """Slot index of each of `n` samples laid out slot by slot (`counts` per slot)."""
-    starts = jnp.cumsum(counts)[:-1]
-    return jnp.cumsum(jnp.zeros((n,), jnp.int32).at[starts].add(1, mode="drop"))

@@ -1,0 +1,219 @@
+r"""The VEGAS rules for a `Grid`: grid refinement (Lepage 1978) and VEGAS+ stratification (Lepage 2021).
+
+`Vegas` draws i.i.d. points through the grid's map, estimates the integral,
+and refines the grid on the weights $(f/p)^2$ (`Grid.refine_bins`). `VegasPlus`
+also cuts the unit cube of the map into hypercubes and spreads each round's
+points over them: a quarter evenly (at least two per cube), the rest
+$\propto \sigma_h^\beta$ with $\sigma_h$ the previous round's standard
+deviation of $f/p$ in cube $h$ (adaptive stratified sampling, §4.2).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _random
+from .._integrand import ratio
+from ..proposals import Grid
+from ..stats import estimate_iid, slot_of_sample, stratified_estimate
+from ._rule import AbstractAdaptation, Integrand, Samples
+
+
+# Share of each round's samples spread evenly over the hypercubes (at least two per
+# cube); the rest go where sigma_h is large. vegas's default `neval_frac` is the
+# adaptive share, 0.75.
+_UNIFORM_SHARE = 0.25
+# Hypercube indices are turned into corners in float arithmetic (`_corners`): exact below this.
+MAX_STRATA = 2**22
+
+
+def _sq_norm(y: jax.Array) -> jax.Array:
+    return jnp.sum(jnp.reshape(y, (y.shape[0], -1)) ** 2, axis=-1)
+
+
+def _check_grid(proposal, rule: str) -> None:
+    if not isinstance(proposal, Grid):
+        raise ValueError(f"{rule} adapts a Grid proposal, got {type(proposal).__name__}.")
+
+
+def _round_uniforms(key, index, n: int, grid: Grid) -> jax.Array:
+    return _random.uniform(jax.random.fold_in(key, index), (n, grid.dim), grid.lo.dtype)
+
+
+def _points(grid: Grid, x: jax.Array) -> jax.Array:
+    return x[:, 0] if grid.event_ndim == 0 else x
+
+
+class VegasState(eqx.Module):
+    """The grid, the next round's points on the unit cube and the grid's lookup table.
+
+    The next round's points and the refined grid's table are made at the end of
+    a round and carried: loop-carried arrays are stored, so neither the random
+    generator nor the table's softmax is re-run inside the map's gathers, which
+    XLA on the CPU would otherwise fuse them into (a scalar loop).
+    """
+
+    grid: Grid
+    u: jax.Array
+    table: tuple[jax.Array, jax.Array, jax.Array]
+
+
+class Vegas(AbstractAdaptation):
+    r"""VEGAS grid refinement: i.i.d. points through the grid, refined on $(f/p)^2$ with damping `alpha`."""
+
+    alpha: float = 0.5
+
+    def check(self, proposal, n):
+        _check_grid(proposal, "Vegas")
+
+    def init(self, key, proposal, n):
+        return VegasState(proposal, _round_uniforms(key, 0, n, proposal), proposal.lookup_table())
+
+    def step(self, key, index, state, integrand: Integrand):
+        grid, n = state.grid, state.u.shape[0]
+        x, log_p, bins = grid.map_with_bins(state.u, state.table)
+        x = _points(grid, x)
+        fx = integrand(x)
+        y, bad = ratio(fx, jnp.exp(log_p))
+        est = estimate_iid(y, bad)
+        grid = grid.refine_bins(bins, _sq_norm(y) / n, alpha=self.alpha)
+        samples = Samples(x, fx, log_p, jnp.full((n,), 1.0 / n, log_p.dtype))
+        u = _round_uniforms(key, index + 1, n, grid)
+        return VegasState(grid, u, grid.lookup_table()), est, samples
+
+    def proposal(self, state):
+        return state.grid
+
+
+def strata_per_axis(d: int, n: int, max_strata: int) -> tuple[int, ...]:
+    r"""Strata per axis for VEGAS+, as vegas chooses them.
+
+    $n_s = \lfloor (n_0/2)^{1/d} \rfloor$ with $n_0$ the evenly spread share of
+    the `n` samples, so each hypercube gets about two of those; then as many axes
+    as still fit get $n_s + 1$ strata. At most `max_strata` hypercubes.
+    """
+    n0 = _UNIFORM_SHARE * n
+    ns = max(1, int((n0 / 2) ** (1.0 / d) + 1e-9))
+    while ns > 1 and ns**d > max_strata:
+        ns -= 1
+    strata = [ns] * d
+    for j in range(d):
+        bigger = strata.copy()
+        bigger[j] += 1
+        if 2 * math.prod(bigger) > n0 or math.prod(bigger) > max_strata:
+            break
+        strata = bigger
+    return tuple(strata)
+
+
+def allocate_to_hypercubes(sigma: jax.Array, n: int, beta) -> jax.Array:
+    r"""Samples per hypercube: an even floor $m_0 \ge 2$ each plus the rest $\propto \sigma_h^\beta$.
+
+    The proportional shares are rounded systematically (the rounded cumulative
+    sum is differenced), so the counts sum to `n` exactly and each is within one
+    of its share: no sort, which matters at thousands of hypercubes.
+    """
+    h = sigma.shape[0]
+    m0 = max(2, int(_UNIFORM_SHARE * n / h))
+    spare = n - m0 * h
+    s = jnp.where(jnp.isfinite(sigma) & (sigma > 0), sigma, 0.0) ** beta
+    total = jnp.sum(s)
+    share = jnp.where(total > 0, s / jnp.where(total > 0, total, 1.0), 1.0 / h)
+    cum = jnp.minimum(jnp.floor(jnp.cumsum(share) * spare + 0.5), spare).astype(jnp.int32)
+    # A float cumsum summed as a tree (as XLA does on the CPU) can step down by a rounding
+    # error; a running maximum restores monotone counts, so no cube drops below m0.
+    cum = jax.lax.cummax(cum).at[-1].set(spare)
+    return m0 + jnp.diff(cum, prepend=0)
+
+
+def hypercube_corners(cube: jax.Array, strata: tuple[int, ...], dtype) -> jax.Array:
+    """Lower corner (in strata units) of each hypercube, `(n,) -> (n, d)`, row-major order.
+
+    Float arithmetic, exact for fewer than 2^22 hypercubes: `jnp.unravel_index`'s
+    integer divisions run as a scalar loop on the CPU.
+    """
+    dtype = jnp.promote_types(dtype, jnp.float32)
+    strides = np.array([math.prod(strata[j + 1 :]) for j in range(len(strata))], dtype)
+    c = cube.astype(dtype)[:, None] + 0.5
+    q = jnp.floor(c / strides)  # cube // stride, per axis
+    sizes = np.asarray(strata, dtype)
+    return q - sizes * jnp.floor((q + 0.5) / sizes)  # ... % strata
+
+
+class StratifiedDraw(eqx.Module):
+    """One VEGAS+ round's points on the unit cube, laid out hypercube by hypercube."""
+
+    u: jax.Array  # (n, d) points
+    cube: jax.Array  # (n,) hypercube of each point, non-decreasing
+    counts: jax.Array  # (H,) points per hypercube
+
+
+class VegasPlusState(eqx.Module):
+    """The grid, the next round's stratified points and the grid's lookup table (see `VegasState`)."""
+
+    grid: Grid
+    draw: StratifiedDraw
+    table: tuple[jax.Array, jax.Array, jax.Array]
+
+
+class VegasPlus(AbstractAdaptation):
+    r"""VEGAS+: VEGAS refinement plus adaptive stratified sampling of the map's unit cube.
+
+    The cube is cut into `prod(strata)` hypercubes $h$ of volume $v = 1/H$
+    (`strata_per_axis`: about $n/8$ of them, at most `max_strata`); cube $h$
+    gets $n_h$ samples (`allocate_to_hypercubes`, exponent `beta`; 0 gives
+    uniform allocation), and $\hat I = v \sum_h \bar y_h$, $\hat V = v^2 \sum_h
+    s_h^2 / n_h$ with $y = f/p$ (stratified sampling, §4.2). The grid is refined
+    with damping `alpha` on $(f/p)^2$ weighted by each sample's volume $v/n_h$.
+    """
+
+    alpha: float = 0.5
+    beta: float = 0.75
+    max_strata: int = eqx.field(static=True, default=2**16)
+
+    def check(self, proposal, n):
+        _check_grid(proposal, "VegasPlus")
+        if self.max_strata > MAX_STRATA:
+            raise ValueError(f"`max_strata` must be at most 2**22, got {self.max_strata}.")
+
+    def _stratified_draw(self, key, index, sigma, n, grid) -> StratifiedDraw:
+        strata = strata_per_axis(grid.dim, n, self.max_strata)
+        raw = _round_uniforms(key, index, n, grid)
+        counts = allocate_to_hypercubes(sigma, n, self.beta)
+        cube = slot_of_sample(counts, n)
+        corner = hypercube_corners(cube, strata, raw.dtype)
+        u = ((corner + raw) / np.asarray(strata, corner.dtype)).astype(raw.dtype)
+        return StratifiedDraw(u, cube, counts)
+
+    def init(self, key, proposal, n):
+        h = math.prod(strata_per_axis(proposal.dim, n, self.max_strata))
+        sigma0 = jnp.ones((h,), proposal.lo.dtype)
+        return VegasPlusState(proposal, self._stratified_draw(key, 0, sigma0, n, proposal), proposal.lookup_table())
+
+    def step(self, key, index, state, integrand: Integrand):
+        grid, draw = state.grid, state.draw
+        n, h = draw.u.shape[0], draw.counts.shape[0]
+        x, log_p, bins = grid.map_with_bins(draw.u, state.table)
+        x = _points(grid, x)
+        fx = integrand(x)
+        y, bad = ratio(fx, jnp.exp(log_p))
+        vol = 1.0 / h
+        est, var_h = stratified_estimate(
+            y, draw.cube, draw.counts, vol, jnp.sum(bad, dtype=jnp.int32)
+        )
+        sigma = jnp.sqrt(jnp.sum(jnp.reshape(var_h, (h, -1)), axis=-1))
+        # Each sample stands for volume v / n_h of the unit cube: the per-bin sums
+        # estimate the integral of (f/p)^2 over each bin, whatever the allocation.
+        weight = vol / draw.counts.astype(y.dtype)[draw.cube]
+        grid = grid.refine_bins(bins, weight * _sq_norm(y), alpha=self.alpha)
+        samples = Samples(x, fx, log_p, weight)
+        next_draw = self._stratified_draw(key, index + 1, sigma, n, grid)
+        return VegasPlusState(grid, next_draw, grid.lookup_table()), est, samples
+
+    def proposal(self, state):
+        return state.grid

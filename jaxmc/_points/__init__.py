@@ -1,0 +1,1 @@
+"""The point sets of `jaxmc.points`, one module per family, and their shared registry."""

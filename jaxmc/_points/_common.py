@@ -1,0 +1,51 @@
+"""Helpers shared by the point sets: dtypes, the x64 switch, 32-bit words to floats."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import check_count
+
+
+# The shipped tables (Sobol' direction numbers, lattice generating vector).
+DATA_DIR = Path(__file__).parent.parent / "_data"
+
+
+def float_dtype(dtype: Any) -> np.dtype:
+    """`dtype` as a NumPy dtype (JAX's default float for `None`); it must be floating."""
+    dt = jnp.dtype(dtype) if dtype is not None else jnp.dtype(jnp.result_type(float))
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise TypeError(f"`dtype` must be a floating dtype, got {dt}.")
+    return dt
+
+
+def below_one(dtype: Any) -> float:
+    """The largest float of `dtype` below 1 (rounding must never produce 1)."""
+    return float(np.nextafter(np.array(1.0, dtype=dtype), np.array(0.0, dtype=dtype)))
+
+
+def x64_enabled() -> bool:
+    """Whether `jax_enable_x64` is on, i.e. 64-bit integers and floats exist under `jit`."""
+    return bool(jax.config.read("jax_enable_x64"))
+
+
+def uint32_to_unit(x: jax.Array, dtype: np.dtype) -> jax.Array:
+    """Map 32-bit integers $x$ to $x / 2^{32}$ in `dtype`, always `< 1`.
+
+    In float64 this is exact; in float32 (24-bit mantissa) the integer is
+    truncated to its top 24 bits first, so the result never rounds up to 1.
+    """
+    if jnp.finfo(dtype).nmant >= 32:
+        return x.astype(dtype) * dtype.type(2.0**-32)
+    shift = 32 - (jnp.finfo(dtype).nmant + 1)
+    return (x >> np.uint32(shift)).astype(dtype) * dtype.type(2.0 ** -(32 - shift))
+
+
+def check_skip(skip: Any) -> int:
+    """The index of the first point of a sequence: a static int `>= 0`."""
+    return check_count(skip, "skip", minimum=0)

@@ -1,0 +1,1 @@
+"""The importance densities of `jaxmc.proposals`, one module per density."""

@@ -1,0 +1,210 @@
+"""VEGAS's separable piecewise-constant density and its grid refinement rule."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._box import log_volume, to_box
+from .._checks import check_bounds, check_count, is_concrete
+from ._base import AbstractUnitMap, _as_matrix, _sum_last
+
+
+class Grid(AbstractUnitMap):
+    r"""VEGAS's separable piecewise-constant density (Lepage 1978, 2021).
+
+    Each axis $j$ has `bins` bins with edges $lo_j = e_{j0} < \dots < e_{jN} = hi_j$;
+    every bin carries probability $1/N$, so the density is
+    $$p(x) = \prod_j \frac{1}{N\,\Delta_{j,i_j(x)}}$$
+    where $\Delta_{ji}$ is the width of the bin of $x_j$. Sampling maps
+    $u \in [0,1)^d$ through the piecewise-linear map $x_j = e_{ji} + \Delta_{ji}(Nu_j - i)$,
+    $i = \lfloor N u_j\rfloor$, so $x$ is differentiable in the widths. The widths
+    are the softmax of unconstrained `logits` `(d, N)` (in units of the box width),
+    so `fit` can optimise them; `refine` applies the classic VEGAS rule instead.
+
+    The VEGAS rule (`refine`, or `jaxmc.fit.adapt`) is the reliable way to
+    adapt a grid. A gradient fit works with a first-order optimiser on fresh
+    samples (`fit(..., solver=OptaxMinimiser(adam), resample=True)`), but
+    BFGS on fixed samples tends to stall: the density at a fixed point jumps
+    when an edge crosses it, so the sample-average objective is only
+    piecewise smooth in the edges.
+    """
+
+    lo: jax.Array
+    hi: jax.Array
+    logits: jax.Array
+
+    def __init__(self, lo, hi, bins: int = 64, *, edges=None):
+        """**Arguments:**
+
+        - `lo`, `hi`: the box (scalars or shape `(d,)`).
+        - `bins`: the number of bins per axis $N$ (static int).
+        - `edges`: optional initial edges `(d, N + 1)` (or `(N + 1,)` for scalar
+          bounds), strictly increasing from `lo` to `hi`; default uniform.
+        """
+        self.lo, self.hi = check_bounds(lo, hi)
+        bins = check_count(bins, "bins", minimum=1)
+        d = 1 if jnp.ndim(self.lo) == 0 else jnp.shape(self.lo)[0]
+        if edges is None:
+            self.logits = jnp.zeros((d, bins), self.lo.dtype)
+        else:
+            edges = jnp.reshape(jnp.asarray(edges, self.lo.dtype), (d, -1))
+            if edges.shape != (d, bins + 1):
+                raise ValueError(f"`edges` must have shape ({d}, {bins + 1}), got {edges.shape}.")
+            widths = jnp.diff(edges, axis=-1)
+            if is_concrete(widths) and not bool(jnp.all(widths > 0)):
+                raise ValueError("`edges` must be strictly increasing along each axis.")
+            self.logits = jnp.log(widths / jnp.sum(widths, axis=-1, keepdims=True))
+
+    def __check_init__(self):
+        if jnp.ndim(self.logits) != 2 or jnp.shape(self.logits)[0] != self.dim:
+            raise ValueError(
+                f"Grid needs logits of shape (d, bins) = ({self.dim}, N), got {jnp.shape(self.logits)}."
+            )
+
+    @property
+    def bins(self) -> int:
+        return jnp.shape(self.logits)[1]
+
+    def _unit_edges(self) -> tuple[jax.Array, jax.Array]:
+        """Widths `(d, N)` and edges `(d, N+1)` in unit coordinates."""
+        w = jax.nn.softmax(self.logits, axis=-1)
+        e = jnp.concatenate([jnp.zeros_like(w[:, :1]), jnp.cumsum(w, axis=-1)], axis=-1)
+        e = e / e[:, -1:]
+        return w, e
+
+    @property
+    def edges(self) -> jax.Array:
+        """Bin edges in the box's coordinates, `(d, N + 1)`."""
+        _, e = self._unit_edges()
+        lo = jnp.reshape(self.lo, (self.dim, 1))
+        hi = jnp.reshape(self.hi, (self.dim, 1))
+        return to_box(e, lo, hi)
+
+    def map(self, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The VEGAS map: `u` `(m, d)` in $[0,1)^d$ to `x` `(m, d)` and `log_pdf(x)`."""
+        x, log_p, _ = self.map_with_bins(u)
+        return x, log_p
+
+    def lookup_table(self) -> tuple[jax.Array, jax.Array, jax.Array]:
+        r"""Per (axis, bin), flattened to `(d * N,)`: left edge, width, and $\log(N\,\text{width})$."""
+        w, e = self._unit_edges()
+        log_w = jax.nn.log_softmax(self.logits, axis=-1) + jnp.log(self.bins)
+        return tuple(jnp.reshape(t, (-1,)) for t in (e[:, :-1], w, log_w))
+
+    def map_with_bins(self, u: jax.Array, table=None) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """`map` plus each point's per-axis bin index `(m, d)`, which `refine` needs.
+
+        `table` is `lookup_table()`, passed in by loops that keep it stored: XLA on the
+        CPU fuses the table's softmax and logs into the gathers below otherwise,
+        recomputing them for every point.
+        """
+        left, width, log_w = self.lookup_table() if table is None else table
+        nb = self.bins
+        y = u * nb
+        i = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, nb - 1)
+        frac = y - i
+        # Scalar gathers (several times faster than one gather of table rows on the CPU).
+        flat = i + nb * jnp.arange(self.dim, dtype=jnp.int32)
+        gather = lambda t: t.at[flat].get(mode="promise_in_bounds")
+        wi = gather(width)
+        lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
+        x = jnp.clip(to_box(gather(left) + wi * frac, lo, hi), lo, hi)
+        log_p = -_sum_last(gather(log_w)) - log_volume(self.lo, self.hi)
+        return x, log_p, i
+
+    def bin_index(self, x: jax.Array) -> jax.Array:
+        """Per-axis bin index of points `(m, d)` -> `(m, d)` ints."""
+        _, e = self._unit_edges()
+        lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
+        t = (x - lo) / (hi - lo)
+        idx = jax.vmap(
+            lambda ej, tj: jnp.searchsorted(ej, tj, side="right") - 1, in_axes=(0, 1), out_axes=1
+        )(e, t)
+        return jnp.clip(idx, 0, self.bins - 1)
+
+    def log_pdf(self, x):
+        xm, batch = _as_matrix(self, x)
+        w, _ = self._unit_edges()
+        i = self.bin_index(xm)
+        wi = w[jnp.arange(self.dim), i]
+        lp = -jnp.sum(jnp.log(self.bins * wi), axis=-1) - log_volume(self.lo, self.hi)
+        inside = jnp.all(
+            (xm >= jnp.reshape(self.lo, (self.dim,))) & (xm <= jnp.reshape(self.hi, (self.dim,))),
+            axis=-1,
+        )
+        return jnp.reshape(jnp.where(inside, lp, -jnp.inf), batch)
+
+    def refine(self, x, weights, *, alpha: float = 0.5, counts=None) -> Grid:
+        r"""One step of the VEGAS grid adaptation (Lepage 1978; vegas's `AdaptiveMap.adapt`).
+
+        For each axis, `weights` (typically $(f(x)/p(x))^2$ per sample, times the
+        sample's weight) are summed per bin to $d_i$ (divided by `counts` per bin
+        if given), smoothed $d_i \leftarrow (d_{i-1} + 6 d_i + d_{i+1})/8$,
+        normalised, and damped
+        $$d_i \leftarrow \Big(\frac{1 - d_i}{\log(1/d_i)}\Big)^{\alpha};$$
+        the new edges then split the piecewise-uniform "mass" $d$ into $N$ equal
+        parts, so bins shrink where $|f|$ is large. `alpha = 0` leaves the grid
+        unchanged; larger `alpha` adapts faster (vegas's default is 0.5).
+
+        **Arguments:** `x` `(n, d)` (or `(n,)`) sample points; `weights` `(n,)`
+        non-negative; `alpha` the damping exponent.
+
+        **Returns:** the refined `Grid`.
+        """
+        if not isinstance(alpha, jax.core.Tracer) and not float(alpha) >= 0:
+            raise ValueError(f"`alpha` must be >= 0, got {alpha}.")
+        xm, batch = _as_matrix(self, x)
+        weights = jnp.asarray(weights)
+        if weights.shape != batch or len(batch) != 1:
+            raise ValueError(
+                f"`weights` must have shape {batch} matching `x`'s batch, got {weights.shape}."
+            )
+        return self.refine_bins(self.bin_index(xm), weights, alpha=alpha, counts=counts)
+
+    def refine_bins(self, index: jax.Array, weights: jax.Array, *, alpha, counts=None) -> Grid:
+        """`refine` from the points' per-axis bin indices `(n, d)` (as `map_with_bins` returns them)."""
+        weights = jnp.where(jnp.isfinite(weights), jnp.abs(weights), 0.0)
+        nb = self.bins
+        # One scatter for all axes: axis j's bin i is slot j * N + i.
+        flat = index + nb * jnp.arange(self.dim, dtype=index.dtype)
+        per_point = jnp.broadcast_to(weights[:, None], flat.shape)
+        sums = jax.ops.segment_sum(
+            jnp.reshape(per_point, (-1,)), jnp.reshape(flat, (-1,)), self.dim * nb
+        )
+        sums = jnp.reshape(sums, (self.dim, nb))
+        if counts is not None:
+            sums = sums / jnp.maximum(counts, 1)
+        new_logits = jax.vmap(lambda s, lg: _vegas_rule(s, lg, alpha))(sums, self.logits)
+        return eqx.tree_at(lambda g: g.logits, self, new_logits)
+
+
+def _vegas_rule(d: jax.Array, logits: jax.Array, alpha) -> jax.Array:
+    """New bin logits for one axis from per-bin weights `d` (see `Grid.refine`)."""
+    nb = d.shape[0]
+    w = jax.nn.softmax(logits)
+    old = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(w)])
+    old = old / old[-1]
+    if nb > 1:
+        padded = jnp.concatenate([d[:1], d, d[-1:]])
+        sm = (padded[:-2] + 6 * d + padded[2:]) / 8
+    else:
+        sm = d
+    total = jnp.sum(sm)
+    ok = total > 0
+    sm = sm / jnp.where(ok, total, 1.0)
+    tiny = jnp.finfo(sm.dtype).tiny
+    pos = (sm > 0) & (sm < 1)
+    safe = jnp.where(pos, sm, 0.5)
+    damped = jnp.where(pos, ((1 - safe) / jnp.log(1 / safe)) ** alpha, jnp.where(sm >= 1, 1.0, 0.0))
+    # Keep a floor so no bin collapses to zero width (and every region stays reachable).
+    damped = jnp.maximum(damped, 1e-8 * jnp.max(damped) + tiny)
+    cum = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(damped)])
+    targets = jnp.linspace(0.0, 1.0, nb + 1, dtype=w.dtype) * cum[-1]
+    new = jnp.interp(targets, cum, old)
+    new = new.at[0].set(0.0).at[-1].set(1.0)
+    widths = jnp.maximum(jnp.diff(new), 1e-12)
+    new_logits = jnp.log(widths / jnp.sum(widths))
+    return jnp.where(ok, new_logits, logits)
+

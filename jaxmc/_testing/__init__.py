@@ -1,0 +1,1 @@
+"""The statistical checks of `jaxmc.testing`."""

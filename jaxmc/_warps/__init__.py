@@ -1,0 +1,1 @@
+"""The warps of `jaxmc.warps`, one module per target domain."""

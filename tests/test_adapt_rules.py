@@ -1,0 +1,181 @@
+"""Adaptation rules as objects: `adapt` over any rule, custom rules, `chain` and its seeds."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.scipy.special import erf
+
+import jaxmc
+from jaxmc.fit import (
+    AbstractAdaptation,
+    Integrand,
+    PartitionGrowth,
+    Refit,
+    Samples,
+    Stage,
+    Vegas,
+    VegasPlus,
+    adapt,
+    chain,
+    run_adaptation,
+    seed_gaussian_mixture,
+)
+from jaxmc.proposals import GaussianMixture, Grid, Partition
+from jaxmc.stats import estimate_iid
+
+
+D = 3
+LO, HI = jnp.zeros(D), jnp.ones(D)
+CENTRES = (0.3, 0.7)
+WIDTH = 0.05
+
+
+def two_peaks(x):
+    """Two Gaussian peaks on the diagonal of the unit cube, weights 1 and 1/2."""
+    g = lambda c: jnp.exp(-jnp.sum((x - c) ** 2) / (2 * WIDTH**2))
+    return g(CENTRES[0]) + 0.5 * g(CENTRES[1])
+
+
+def two_peaks_integral():
+    def axis(c):
+        return WIDTH * np.sqrt(np.pi / 2) * float(erf((1 - c) / (WIDTH * np.sqrt(2))) + erf(c / (WIDTH * np.sqrt(2))))
+
+    return axis(CENTRES[0]) ** D + 0.5 * axis(CENTRES[1]) ** D
+
+
+def combined_arrays(result):
+    est, prop = result
+    return jax.tree.leaves((est.mean, est.variance, est.parts.mean, eqx.filter(prop, eqx.is_array)))
+
+
+@pytest.mark.parametrize(
+    "options, rule",
+    [
+        ({}, Vegas()),
+        ({"stratify": True, "beta": 0.5}, VegasPlus(beta=0.5)),
+    ],
+)
+def test_options_and_rule_objects_agree_exactly(key, options, rule):
+    """`adapt`'s options only choose a rule: passing the rule itself gives the same numbers."""
+    grid = Grid(LO, HI, 16)
+    a = adapt(key, two_peaks, grid, iterations=3, n_per_iteration=2000, **options)
+    b = adapt(key, two_peaks, grid, iterations=3, n_per_iteration=2000, rule=rule)
+    for x, y in zip(combined_arrays(a), combined_arrays(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_partition_rule_object(key):
+    part = Partition(LO[:2], HI[:2], 32)
+    f = lambda x: two_peaks(jnp.concatenate([x, jnp.full((1,), 0.3)]))
+    a = adapt(key, f, part, iterations=2, n_per_iteration=256, passes=2)
+    b = adapt(key, f, part, iterations=2, n_per_iteration=256, rule=PartitionGrowth(passes=2))
+    for x, y in zip(combined_arrays(a), combined_arrays(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+class Frozen(AbstractAdaptation):
+    """A rule that adapts nothing: i.i.d. rounds from a fixed proposal (a user's own rule)."""
+
+    def init(self, key, proposal, n):
+        return (proposal, jnp.zeros((n,)))  # the zeros only carry the static round size
+
+    def step(self, key, index, state, integrand):
+        proposal, slot = state
+        n = slot.shape[0]
+        x, px = proposal.sample(jax.random.fold_in(key, index), n)
+        fx = integrand(x)
+        est = estimate_iid(fx / px, jnp.zeros((n,), bool))
+        return state, est, Samples(x, fx, jnp.log(px), jnp.full((n,), 1.0 / n))
+
+    def proposal(self, state):
+        return state[0]
+
+
+def test_a_new_rule_is_a_new_class(key):
+    """A user's rule runs through `adapt` unchanged: unbiased rounds, the proposal kept."""
+    gm = GaussianMixture(jax.random.key(3), LO, HI, 2, scale=0.2)
+    est, prop = adapt(key, two_peaks, gm, iterations=6, n_per_iteration=4000, rule=Frozen())
+    assert est.parts.mean.shape == (6,)
+    assert abs(float(est.mean) - two_peaks_integral()) < 5 * float(est.stderr)
+    for x, y in zip(jax.tree.leaves(gm), jax.tree.leaves(prop), strict=True):
+        np.testing.assert_array_equal(x, y)
+    # Under jit, with the rule closed over.
+    est_jit, _ = jax.jit(
+        lambda k: adapt(k, two_peaks, gm, iterations=6, n_per_iteration=4000, rule=Frozen())
+    )(key)
+    np.testing.assert_allclose(est_jit.mean, est.mean, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "rule, proposal, n",
+    [
+        (Vegas(), Grid(LO, HI, 16), 1000),
+        (VegasPlus(), Grid(LO, HI, 16), 1000),
+        (PartitionGrowth(), Partition(LO, HI, 64), 1000),
+        (Refit(steps=2), GaussianMixture(jax.random.key(2), LO, HI, 2), 500),
+    ],
+)
+def test_samples_reproduce_the_round_estimate(key, rule, proposal, n):
+    r"""The last round's `Samples` follow their convention: $\sum_i w_i f(x_i)/q(x_i)$ is that
+    round's estimate, for i.i.d. and stratified rules alike."""
+    parts, _, s = run_adaptation(rule, key, Integrand(two_peaks), proposal, 2, n, keep_samples=True)
+    assert s.x.shape == (n, D) and s.weights.shape == (n,)
+    np.testing.assert_allclose(float(jnp.sum(s.weights)), 1.0, rtol=1e-12)
+    total = jnp.sum(s.weights * s.fx * jnp.exp(-s.log_q))
+    np.testing.assert_allclose(float(total), float(parts.mean[-1]), rtol=1e-10)
+
+
+def test_chain_seeds_a_mixture_from_the_grid(key):
+    """VEGAS+ finds the peaks; a mixture seeded from its weighted samples puts a component on
+    each, is refitted, and the combined estimate of every kept round is unbiased and beats the
+    grid's own rounds."""
+    stages = [
+        Stage(VegasPlus(), iterations=5, n_per_iteration=8000, warmup=2),
+        Stage(Refit(steps=8), iterations=3, n_per_iteration=8000, seed=seed_gaussian_mixture(4)),
+    ]
+    est, gm = chain(key, two_peaks, Grid(LO, HI, 32), stages)
+    assert isinstance(gm, GaussianMixture)
+    assert est.parts.mean.shape == (3 + 3,)
+    truth = two_peaks_integral()
+    assert abs(float(est.mean) - truth) < 5 * float(est.stderr)
+    grid_rounds, gm_rounds = est.parts.variance[:3], est.parts.variance[3:]
+    assert float(jnp.max(gm_rounds)) < float(jnp.min(grid_rounds))
+    # A heavy component sits on each peak.
+    weights = jax.nn.softmax(gm.logits)
+    for c in CENTRES:
+        near = jnp.all(jnp.abs(gm.means - c) < 2 * WIDTH, axis=-1)
+        assert float(jnp.sum(jnp.where(near, weights, 0.0))) > 0.1
+
+
+def test_chain_single_stage_is_adapt_with_a_folded_key(key):
+    grid = Grid(LO, HI, 16)
+    a = chain(key, two_peaks, grid, [Stage(Vegas(), iterations=3, n_per_iteration=1000)])
+    b = adapt(jax.random.fold_in(key, 0), two_peaks, grid, iterations=3, n_per_iteration=1000)
+    for x, y in zip(combined_arrays(a), combined_arrays(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_rule_errors(key):
+    gm = GaussianMixture(jax.random.key(0), LO, HI, 2)
+    with pytest.raises(ValueError, match="Grid"):
+        adapt(key, two_peaks, gm, iterations=2, n_per_iteration=64, rule=Vegas())
+    with pytest.raises(ValueError, match="Partition"):
+        adapt(key, two_peaks, Grid(LO, HI), iterations=2, n_per_iteration=64, rule=PartitionGrowth())
+    with pytest.raises(TypeError, match="rule"):
+        adapt(key, two_peaks, gm, iterations=2, n_per_iteration=64, rule="vegas")
+    with pytest.raises(ValueError, match="seed"):
+        chain(key, two_peaks, gm, [Stage(Refit(), 2, 64, seed=seed_gaussian_mixture(2))])
+    with pytest.raises(TypeError, match="stages"):
+        chain(key, two_peaks, gm, [])
+    with pytest.raises(ValueError, match="warmup"):
+        chain(key, two_peaks, Grid(LO, HI), [Stage(Vegas(), 2, 64, warmup=2)])
+    with pytest.raises(ValueError, match="objective"):
+        adapt(key, two_peaks, gm, iterations=2, n_per_iteration=64, rule=Refit(objective="x"))
+
+
+def test_public_namespace_of_fit():
+    """The rules and the chaining API are public; nothing private leaks."""
+    for name in jaxmc.fit.__all__:
+        assert not name.startswith("_") and hasattr(jaxmc.fit, name)
