@@ -25,7 +25,12 @@ from .estimators import (
     stratified as stratified,
     uniform as uniform,
 )
-from .stats import Combined as Combined, Estimate as Estimate, combine as combine
+from .stats import (
+    Combined as Combined,
+    Estimate as Estimate,
+    ReliabilityWarning as ReliabilityWarning,
+    combine as combine,
+)
 
 
 __version__ = importlib.metadata.version("jaxmc")

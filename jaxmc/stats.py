@@ -28,6 +28,10 @@ import jax.numpy as jnp
 from jax.scipy.special import gammaincc, ndtri
 
 
+class ReliabilityWarning(UserWarning):
+    """An error bar that cannot be trusted: e.g. adaptive rounds that disagree (tiny `q`)."""
+
+
 class Estimate(eqx.Module):
     r"""A Monte Carlo estimate and its error.
 

@@ -53,7 +53,8 @@ def combined_arrays(result):
 @pytest.mark.parametrize(
     "options, rule",
     [
-        ({}, Vegas()),
+        ({"stratify": False}, Vegas()),
+        ({}, VegasPlus()),
         ({"stratify": True, "beta": 0.5}, VegasPlus(beta=0.5)),
     ],
 )
@@ -120,7 +121,10 @@ def test_a_new_rule_is_a_new_class(key):
 def test_samples_reproduce_the_round_estimate(key, rule, proposal, n):
     r"""The last round's `Samples` follow their convention: $\sum_i w_i f(x_i)/q(x_i)$ is that
     round's estimate, for i.i.d. and stratified rules alike."""
-    parts, _, s = run_adaptation(rule, key, Integrand(two_peaks), proposal, 2, n, keep_samples=True)
+    parts, state, s = run_adaptation(
+        rule, key, Integrand(two_peaks), proposal, 2, n, keep_samples=True
+    )
+    assert type(rule.proposal(state)) is type(proposal)
     assert s.x.shape == (n, D) and s.weights.shape == (n,)
     np.testing.assert_allclose(float(jnp.sum(s.weights)), 1.0, rtol=1e-12)
     total = jnp.sum(s.weights * s.fx * jnp.exp(-s.log_q))
@@ -152,7 +156,10 @@ def test_chain_seeds_a_mixture_from_the_grid(key):
 def test_chain_single_stage_is_adapt_with_a_folded_key(key):
     grid = Grid(LO, HI, 16)
     a = chain(key, two_peaks, grid, [Stage(Vegas(), iterations=3, n_per_iteration=1000)])
-    b = adapt(jax.random.fold_in(key, 0), two_peaks, grid, iterations=3, n_per_iteration=1000)
+    b = adapt(
+        jax.random.fold_in(key, 0), two_peaks, grid, iterations=3, n_per_iteration=1000,
+        stratify=False,
+    )
     for x, y in zip(combined_arrays(a), combined_arrays(b), strict=True):
         np.testing.assert_array_equal(x, y)
 

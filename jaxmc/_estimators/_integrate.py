@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from .. import _random
 from .._box import to_box
 from .._checks import (
     check_bounds,
@@ -41,8 +42,11 @@ from .._checks import (
     check_key,
     is_concrete,
 )
+from .._fit._vegas import strata_per_axis, stratified_unit_points
 from .._integrand import evaluate, ratio
 from .._points._registry import unit_points
+from ..fit import Integrand, VegasPlus, run_adaptation
+from ..proposals import Grid
 from ..stats import (
     Estimate,
     Moments,
@@ -51,11 +55,13 @@ from ..stats import (
     merge,
     merge_across_devices,
     merge_all,
+    stratified_estimate,
 )
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
-ADAPT_ITERATIONS = 8  # VEGAS rounds that train the Grid for method="adaptive"
+ADAPT_ITERATIONS = 10  # VEGAS+ rounds that train the grid for method="adaptive" (at most)
+ADAPT_BINS = 64  # grid bins per axis for method="adaptive"
 BLOCK = 1 << 14  # samples per block; power of two so Sobol' blocks are (t, m, s)-nets
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
 MAX_N = 1 << 30  # default budget when only a tolerance is given
@@ -97,9 +103,11 @@ def integrate(
     - `n`: the evaluation budget (a static int).
     - `method`: `"plain"` (i.i.d. uniform, eq. 8), `"qmc"` (each block a
       scrambled Sobol' net; variance from the spread of block means),
-      `"stratified"` (each block a jittered grid), `"adaptive"` (a VEGAS
-      `Grid` trained by `jaxmc.fit.adapt` on about a fifth of the budget, then
-      importance sampling from the frozen grid), or `"auto"`: scrambled Sobol'
+      `"stratified"` (each block a jittered grid), `"adaptive"` (VEGAS+: a
+      `Grid` and its stratification trained by `jaxmc.fit.VegasPlus` on at most
+      a quarter of the budget, then each block one VEGAS+ round of $2^{14}$
+      points on the frozen grid and allocation; the budget is rounded down to
+      whole rounds), or `"auto"`: scrambled Sobol'
       for $d \le 12$, where randomised QMC converges faster on smooth integrands
       and whose variance is at most a small constant times plain MC's (Owen), else plain.
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
@@ -154,9 +162,10 @@ def integrate(
         method = "qmc" if d <= _QMC_MAX_DIM else "plain"
     proposal, trained = None, 0
     if method == "adaptive":
-        key, proposal, trained = _train_grid(key, f, lo, hi, budget, batched)
+        block = _adaptive_block(budget)
+        key, proposal, trained = _train_vegas_plus(key, f, lo, hi, budget, block, batched)
         budget -= trained
-    plan = _plan(method, budget, chunk, mesh.devices.size, d)
+    plan = _plan(method, budget, chunk, mesh.devices.size, d, block if method == "adaptive" else 0)
     tolerant = rtol is not None or atol is not None
     est = _integrate(
         key,
@@ -180,30 +189,31 @@ def integrate(
     return est
 
 
-def _train_grid(key, f, lo, hi, budget, batched):
-    """Fit a VEGAS `Grid` with about a fifth of the budget (at most 8 x 2^14 evaluations).
+def _adaptive_block(budget: int) -> int:
+    """Points per VEGAS+ round of method="adaptive": 2^14, fewer for small budgets (>= 16 rounds)."""
+    if budget < 16 * 256:
+        raise ValueError(f"method='adaptive' needs a budget of at least {16 * 256}, got {budget}.")
+    return min(BLOCK, 1 << int(math.floor(math.log2(budget // 16))))
 
-    The training evaluations are counted in the result's `n` but not used in
-    its mean: the streamed estimate from the frozen grid stays unbiased.
+
+def _train_vegas_plus(key, f, lo, hi, budget, block, batched):
+    r"""Train a VEGAS+ grid and stratification on at most a quarter of the budget.
+
+    Up to `ADAPT_ITERATIONS` rounds of `block` points (`jaxmc.fit.VegasPlus`:
+    grid refinement and adaptive stratified sampling of the map's unit cube).
+    Returns the streaming key, the frozen `(grid, counts, strata)` — the grid,
+    the points per hypercube its last round allocated for the next, and the
+    hypercubes per axis — and the number of training evaluations. Those are
+    counted in the result's `n` but not in its mean, so the streamed estimate,
+    drawn with the frozen grid and allocation, stays unbiased.
     """
-    from ..fit import adapt
-    from ..proposals import Grid
-
-    per_iteration = min(1 << 14, budget // (5 * ADAPT_ITERATIONS))
-    if per_iteration < 256:
-        raise ValueError(
-            f"method='adaptive' needs a budget of at least {5 * ADAPT_ITERATIONS * 256}, got {budget}."
-        )
+    rounds = max(2, min(ADAPT_ITERATIONS, budget // (4 * block)))
     train_key, key = jax.random.split(key)
-    _, grid = adapt(
-        train_key,
-        f,
-        Grid(lo, hi, bins=64),
-        iterations=ADAPT_ITERATIONS,
-        n_per_iteration=per_iteration,
-        batched=batched,
-    )
-    return key, grid, ADAPT_ITERATIONS * per_iteration
+    rule = VegasPlus()
+    grid = Grid(lo, hi, bins=ADAPT_BINS)
+    _, state, _ = run_adaptation(rule, train_key, Integrand(f, batched), grid, rounds, block)
+    strata = strata_per_axis(grid.dim, block, rule.max_strata)
+    return key, (state.grid, state.draw.counts, strata), rounds * block
 
 
 def _check_tolerance(tol: Any, name: str) -> Any:
@@ -240,9 +250,11 @@ class _Plan(eqx.Module):
     strata: tuple[int, ...] = eqx.field(static=True)  # jittered-grid counts per block
 
 
-def _plan(method: str, budget: int, chunk: int, devices: int, d: int) -> _Plan:
+def _plan(
+    method: str, budget: int, chunk: int, devices: int, d: int, adaptive_block: int = 0
+) -> _Plan:
     strata: tuple[int, ...] = ()
-    if method in ("plain", "adaptive"):
+    if method == "plain":
         # Smaller budgets get one power-of-two block, so little is masked away.
         block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
         blocks = -(-budget // block)
@@ -251,6 +263,8 @@ def _plan(method: str, budget: int, chunk: int, devices: int, d: int) -> _Plan:
         if budget < 16:
             raise ValueError(f"`n` must be >= 16 for method {method!r}, got {budget}.")
         block = min(BLOCK, 1 << int(math.floor(math.log2(budget // 8))))
+        if method == "adaptive":  # one VEGAS+ round per block, of the size it was trained at
+            block = adaptive_block
         if method == "stratified":
             per_axis = int(math.floor(block ** (1.0 / d) + 1e-9))
             if per_axis < 2:
@@ -278,6 +292,26 @@ def _unit_points(method: str, plan: _Plan, key: jax.Array, d: int, dtype) -> jax
     return unit_points(name, key, plan.block, d, counts=plan.strata).astype(dtype)
 
 
+def _vegas_plus_block(key, frozen, n, f, batched):
+    r"""One VEGAS+ round on the frozen grid and allocation: one observation, its estimate.
+
+    The round's points are jittered into the hypercubes of the grid's unit cube,
+    `counts[h]` in cube $h$, mapped through the grid, and combined as
+    $\hat I = v \sum_h \bar y_h$ (§4.2); the rounds are i.i.d., so the
+    stream's variance comes from their spread.
+    """
+    grid, counts, strata = frozen
+    raw = _random.uniform(key, (n, grid.dim), grid.lo.dtype)
+    draw = stratified_unit_points(raw, counts, strata)
+    x, log_p, _ = grid.map_with_bins(draw.u)
+    fx = evaluate(f, x if grid.event_ndim else x[:, 0], batched)
+    y, bad = ratio(fx, jnp.exp(log_p))
+    bad_count = jnp.sum(bad, dtype=jnp.int32)
+    est, _ = stratified_estimate(y, draw.cube, counts, 1.0 / counts.shape[0], bad_count)
+    m = Moments(jnp.ones((), y.dtype), est.mean, jnp.zeros_like(est.mean))
+    return m, jnp.asarray(n, jnp.int32), bad_count
+
+
 @partial(
     eqx.filter_jit,
 )
@@ -285,12 +319,18 @@ def _integrate(key, proposal, lo, hi, rtol, atol, *, f, method, plan, mesh, tole
     d = 1 if lo.ndim == 0 else lo.shape[0]
     dtype = lo.dtype
     volume = jnp.prod(hi - lo)
-    per_sample = method in ("plain", "adaptive")
+    per_sample = method == "plain"
     axes = tuple(mesh.axis_names)
 
     def moments_of_block(b):
         if method == "adaptive":
-            x, px = proposal.sample(jax.random.fold_in(key, b), plan.block)
+            m, evaluations, bad = _vegas_plus_block(
+                jax.random.fold_in(key, b), proposal, plan.block, f, batched
+            )
+            # Blocks past the budget (the last step's spare slots) are dropped.
+            inside = b < plan.blocks
+            m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
+            return m, jnp.where(inside, evaluations, 0), jnp.where(inside, bad, 0)
         else:
             u = _unit_points(method, plan, jax.random.fold_in(key, b), d, dtype)
             x = to_box(u if lo.ndim else u[:, 0], lo, hi)

@@ -3,6 +3,7 @@ r"""`adapt`: rounds of an adaptation rule, combined; `chain`: stages whose sampl
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -11,9 +12,9 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._checks import check_callable, check_choice, check_count, check_key
+from .._checks import check_callable, check_choice, check_count, check_key, is_concrete
 from ..proposals import GaussianMixture, Grid, Partition, check_proposal
-from ..stats import Combined, combine
+from ..stats import Combined, ReliabilityWarning, combine
 from ._miser import PartitionGrowth
 from ._objectives import OBJECTIVES
 from ._refit import Refit
@@ -31,7 +32,7 @@ def default_rule(
     proposal: Any,
     *,
     alpha: float = 0.5,
-    stratify: bool = False,
+    stratify: bool | None = None,
     beta: float = 0.75,
     max_strata: int = 2**16,
     passes: int = 4,
@@ -39,8 +40,10 @@ def default_rule(
     fit_steps: int = 32,
     objective: str = "variance",
 ) -> AbstractAdaptation:
-    """The rule `adapt` uses for `proposal`: `Vegas` (or `VegasPlus` with `stratify`) for a
-    `Grid`, `PartitionGrowth` for a `Partition`, `Refit` for any other proposal."""
+    """The rule `adapt` uses for `proposal`: `VegasPlus` for a `Grid` (`Vegas` with
+    `stratify=False`), `PartitionGrowth` for a `Partition`, `Refit` for any other proposal."""
+    if stratify is None:
+        stratify = isinstance(proposal, Grid)  # VEGAS+ by default, as in vegas 6
     if stratify and not isinstance(proposal, Grid):
         raise ValueError(
             f"`stratify=True` needs a Grid proposal (VEGAS+), got {type(proposal).__name__}."
@@ -61,7 +64,7 @@ def adapt(
     n_per_iteration: int,
     warmup: int = 0,
     alpha: float = 0.5,
-    stratify: bool = False,
+    stratify: bool | None = None,
     beta: float = 0.75,
     max_strata: int = 2**16,
     passes: int = 4,
@@ -78,8 +81,8 @@ def adapt(
     eq. 10/12), and refits the proposal on the same evaluations:
 
     - a `Grid` by the VEGAS rule (`Grid.refine` with damping `alpha`, on the
-      weights $(f/p)^2$); with `stratify=True` the unit cube of the grid's map is
-      also cut into hypercubes (about $n/8$ of them, as vegas does) and the
+      weights $(f/p)^2$); by default (`stratify=None` or `True`; `False` for
+      plain VEGAS) the unit cube of the grid's map is also cut into hypercubes (about $n/8$ of them, as vegas does) and the
       samples are spread over them: a quarter evenly (at least two per cube),
       the rest $\propto \sigma_h^\beta$ (adaptive stratified sampling of VEGAS+,
       Lepage 2021), $\sigma_h$ the previous round's standard deviation of $f/p$
@@ -101,7 +104,8 @@ def adapt(
 
     The rounds are then combined by `combine` (inverse-variance weights), so the
     result carries `chi2_dof` and `q` — a tiny `q` says the rounds disagree, e.g.
-    because the early ones missed a peak — and the per-round estimates in
+    because the early ones missed a peak, and outside `jit` a `q` below 1e-3
+    warns with `jaxmc.ReliabilityWarning` — and the per-round estimates in
     `parts`. The first `warmup` rounds (whose density was still poor) are left
     out of the combination (and of `parts`); they still train the proposal.
 
@@ -119,7 +123,8 @@ def adapt(
     - `n_per_iteration`: integrand evaluations per round (static int).
     - `warmup`: rounds left out of the combination (`0 <= warmup < iterations`).
     - `alpha`: VEGAS damping exponent for `Grid` (vegas's default 0.5).
-    - `stratify`, `beta`, `max_strata`: VEGAS+ stratification for `Grid`
+    - `stratify`, `beta`, `max_strata`: VEGAS+ stratification for `Grid` (on by
+      default; `stratify=False` gives plain VEGAS)
       (`beta = 0` gives uniform allocation; at most `max_strata <= 2**22`
       hypercubes).
     - `passes`: rounds of cell splitting per iteration for `Partition`
@@ -169,9 +174,27 @@ def adapt(
         )
     elif not isinstance(rule, AbstractAdaptation):
         raise TypeError(f"`rule` must be an AbstractAdaptation, got {type(rule).__name__}.")
-    parts, proposal, _ = run_adaptation(rule, key, Integrand(f, batched), proposal, iterations, n)
+    parts, state, _ = run_adaptation(rule, key, Integrand(f, batched), proposal, iterations, n)
     parts = jax.tree.map(lambda a: a[warmup:], parts)
-    return combine(parts), proposal
+    return _warn_if_rounds_disagree(combine(parts)), rule.proposal(state)
+
+
+# Below this Q the rounds' estimates are inconsistent with one integral (vegas's rule of thumb).
+_Q_ALARM = 1e-3
+
+
+def _warn_if_rounds_disagree(combined: Combined) -> Combined:
+    """Outside `jit`, warn when the rounds disagree: typically early rounds missed a peak."""
+    if is_concrete(combined.q) and float(combined.q) < _Q_ALARM:
+        warnings.warn(
+            f"the adaptive rounds disagree (chi2/dof = {float(combined.chi2_dof):.3g}, "
+            f"Q = {float(combined.q):.2g}): early rounds probably missed part of the integrand, "
+            "so the combined error bar cannot be trusted. Leave them out with `warmup`, or run "
+            "more or larger rounds.",
+            ReliabilityWarning,
+            stacklevel=3,
+        )
+    return combined
 
 
 class Stage(eqx.Module):
@@ -266,10 +289,11 @@ def chain(
             proposal = stage.seed(proposal, samples)
         proposal = check_proposal(proposal, f"proposal of stage {s}", ("sample", "log_pdf"))
         seeds_next = s + 1 < len(stages) and stages[s + 1].seed is not None
-        parts, proposal, samples = run_adaptation(
+        parts, state, samples = run_adaptation(
             stage.rule, jax.random.fold_in(key, s), integrand, proposal, iterations, n,
             keep_samples=seeds_next,
         )
+        proposal = stage.rule.proposal(state)
         kept.append(jax.tree.map(lambda a: a[warmup:], parts))
     parts = jax.tree.map(lambda *a: jnp.concatenate(a), *kept)
-    return combine(parts), proposal
+    return _warn_if_rounds_disagree(combine(parts)), proposal

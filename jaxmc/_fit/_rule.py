@@ -100,8 +100,9 @@ def run_adaptation(
 ) -> tuple[Estimate, Any, Samples | None]:
     """`iterations` rounds of `rule` in one `lax.scan`.
 
-    **Returns:** the per-round estimates (stacked), the adapted proposal, and,
-    with `keep_samples`, the last round's `Samples` (else `None`).
+    **Returns:** the per-round estimates (stacked), the rule's final state
+    (`rule.proposal(state)` is the adapted proposal), and, with `keep_samples`,
+    the last round's `Samples` (else `None`).
     """
     rule.check(proposal, n)
     state = rule.init(key, proposal, n)
@@ -119,7 +120,7 @@ def run_adaptation(
             return new_carry, est
 
         carry, parts = jax.lax.scan(round_estimate, carry, jnp.arange(iterations))
-        return parts, rule.proposal(eqx.combine(carry, static)), None
+        return parts, eqx.combine(carry, static), None
 
     # Carry the latest round's samples (not stacked over rounds: bounded memory).
     shapes = jax.eval_shape(lambda c: round_(c, jnp.int32(0))[1][1], carry)
@@ -130,4 +131,4 @@ def run_adaptation(
         return (new_carry, samples), est
 
     (carry, samples), parts = jax.lax.scan(round_keep, (carry, empty), jnp.arange(iterations))
-    return parts, rule.proposal(eqx.combine(carry, static)), samples
+    return parts, eqx.combine(carry, static), samples

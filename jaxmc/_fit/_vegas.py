@@ -153,6 +153,19 @@ class StratifiedDraw(eqx.Module):
     counts: jax.Array  # (H,) points per hypercube
 
 
+def stratified_unit_points(raw: jax.Array, counts: jax.Array, strata: tuple[int, ...]) -> StratifiedDraw:
+    """Jitter uniforms `raw` `(n, d)` into the hypercubes of the unit cube, `counts[h]` in cube `h`.
+
+    The cubes are the `prod(strata)` cells of a grid with `strata[j]` cells along
+    axis $j$ (row-major order); the points come laid out cube by cube.
+    """
+    n = raw.shape[0]
+    cube = slot_of_sample(counts, n)
+    corner = hypercube_corners(cube, strata, raw.dtype)
+    u = ((corner + raw) / np.asarray(strata, corner.dtype)).astype(raw.dtype)
+    return StratifiedDraw(u, cube, counts)
+
+
 class VegasPlusState(eqx.Module):
     """The grid, the next round's stratified points and the grid's lookup table (see `VegasState`)."""
 
@@ -183,12 +196,8 @@ class VegasPlus(AbstractAdaptation):
 
     def _stratified_draw(self, key, index, sigma, n, grid) -> StratifiedDraw:
         strata = strata_per_axis(grid.dim, n, self.max_strata)
-        raw = _round_uniforms(key, index, n, grid)
         counts = allocate_to_hypercubes(sigma, n, self.beta)
-        cube = slot_of_sample(counts, n)
-        corner = hypercube_corners(cube, strata, raw.dtype)
-        u = ((corner + raw) / np.asarray(strata, corner.dtype)).astype(raw.dtype)
-        return StratifiedDraw(u, cube, counts)
+        return stratified_unit_points(_round_uniforms(key, index, n, grid), counts, strata)
 
     def init(self, key, proposal, n):
         h = math.prod(strata_per_axis(proposal.dim, n, self.max_strata))
