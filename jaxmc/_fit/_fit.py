@@ -142,7 +142,8 @@ def fit(
     - `n`: samples in the objective (static int).
     - `solver`: any `optimistix.AbstractMinimiser`; default
       `optimistix.BFGS(rtol=1e-5, atol=1e-5)` (`optimistix.LBFGS` above 2000
-      parameters). For a `Grid` (objective `"variance"`, no `reuse`) the default
+      parameters). For a `Grid` (objective `"variance"`, no `reuse`, `resample`
+      or `filter_spec`) the default
       is the VEGAS refinement instead of a solver: `min(max_steps, 10)` rounds of
       `n` points (`jaxmc.fit.Vegas`), since a gradient solver stalls on a grid's
       piecewise-constant density; `steps` counts the rounds. For a `Flow` (or a proposal containing one) the default is
@@ -203,7 +204,8 @@ def fit(
     n = check_count(n)
     max_steps = check_count(max_steps, "max_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
-    if solver is None and isinstance(proposal, Grid) and objective == "variance" and not reuse:
+    vegas = objective == "variance" and not (reuse or resample or filter_spec is not None)
+    if solver is None and isinstance(proposal, Grid) and vegas:
         return _vegas_fit(key, f, proposal, n, max_steps, batched)
     params, static = split_parameters(proposal, filter_spec)
     default_solver = solver is None
