@@ -76,22 +76,26 @@ def test_partition_rule_object(key):
         np.testing.assert_array_equal(x, y)
 
 
+class FrozenState(eqx.Module):
+    proposal: object
+    n: int = eqx.field(static=True)
+
+
 class Frozen(AbstractAdaptation):
     """A rule that adapts nothing: i.i.d. rounds from a fixed proposal (a user's own rule)."""
 
     def init(self, key, proposal, n):
-        return (proposal, jnp.zeros((n,)))  # the zeros only carry the static round size
+        return FrozenState(proposal, n)
 
     def step(self, key, index, state, integrand):
-        proposal, slot = state
-        n = slot.shape[0]
-        x, px = proposal.sample(jax.random.fold_in(key, index), n)
+        n = state.n
+        x, px = state.proposal.sample(jax.random.fold_in(key, index), n)
         fx = integrand(x)
         est = estimate_iid(fx / px, jnp.zeros((n,), bool))
         return state, est, Samples(x, fx, jnp.log(px), jnp.full((n,), 1.0 / n))
 
     def proposal(self, state):
-        return state[0]
+        return state.proposal
 
 
 def test_a_new_rule_is_a_new_class(key):

@@ -300,10 +300,10 @@ def _vegas_fit(key, f, grid, n: int, max_steps: int, batched: bool) -> FitResult
     _, state, samples = run_adaptation(
         rule, key, Integrand(f, batched), grid, rounds, n, keep_samples=True
     )
-    y2 = jnp.sum(jnp.reshape(samples.fx, (n, -1)) ** 2, axis=-1) * jnp.exp(-2 * samples.log_q)
+    loss = objective_loss("variance", log_abs(samples.fx), samples.log_q, samples.weights)
     return FitResult(
         proposal=rule.proposal(state),
-        loss=jnp.log(jnp.sum(samples.weights * y2)),
+        loss=loss,
         steps=jnp.asarray(rounds),
         result=optx.RESULTS.successful,
     )
