@@ -1,39 +1,24 @@
-r"""`integrate`: the streaming driver with tolerances, bounded memory and devices.
+r"""`integrate`: the driver users reach for first — tolerances, budgets, and the choice of method.
 
-The samples are organised in *blocks* of a fixed size $B$. Block $b$ draws its
-randomness from `fold_in(key, b)`, so the same evaluation index gets the same
-point whatever the chunk size or the number of devices: a run is a function of
-`(key, n)` alone, up to the rounding of the final reductions. Each loop step
-evaluates a *chunk* of whole blocks, sharded over the devices of a
-`jax.sharding.Mesh`; every device reduces its blocks to `Moments`, and the
-devices merge theirs with collectives (`psum` of counts, weighted means and
-centred second moments). The running total is another `Moments` merged with
-Chan et al.'s update, so memory is bounded by the chunk and float32 stays
-accurate over $10^9$ samples.
-
-Two kinds of statistical unit are used. Plain Monte Carlo treats every sample
-as an i.i.d. observation. Randomised QMC and stratification make the samples
-inside a block dependent; there each block is one independent randomisation
-(an unbiased estimate on its own) and the variance comes from the spread of
-the block means, as in `randomized_qmc`.
+The streaming itself (blocks, chunks, devices, the tolerance loop) is
+`_stream.stream`; the pilot of `method="auto"` is `_auto.run_pilot`. This
+module checks the arguments, trains what a method needs before streaming (the
+VEGAS+ grid of `"adaptive"`), and labels the result with the method used.
 """
 
 from __future__ import annotations
 
 import math
-import sys
+import warnings
 from collections.abc import Callable
-from functools import partial
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh
 
-from .. import _random
-from .._box import to_box
 from .._checks import (
     check_bounds,
     check_callable,
@@ -42,30 +27,36 @@ from .._checks import (
     check_key,
     is_concrete,
 )
-from .._fit._vegas import strata_per_axis, stratified_unit_points
-from .._integrand import evaluate, ratio
-from .._points._registry import unit_points
-from ..fit import Integrand, VegasPlus, run_adaptation
+from .._fit._vegas import strata_per_axis
+from ..fit import Integrand, VegasPlus
 from ..proposals import Grid
-from ..stats import (
-    Estimate,
-    Moments,
-    block_moments,
-    estimate_from_moments,
-    merge,
-    merge_across_devices,
-    merge_all,
-    stratified_estimate,
-)
+from ..stats import Estimate, ReliabilityWarning
+from ._auto import GRID_BINS, PILOT_ROUNDS, Pilot, run_adaptation, run_pilot
+from ._stream import BLOCK, plan, stream
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
 ADAPT_ITERATIONS = 10  # VEGAS+ rounds that train the grid for method="adaptive" (at most)
-ADAPT_BINS = 64  # grid bins per axis for method="adaptive"
-BLOCK = 1 << 14  # samples per block; power of two so Sobol' blocks are (t, m, s)-nets
+ADAPT_BINS = GRID_BINS  # grid bins per axis for method="adaptive"
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
 MAX_N = 1 << 30  # default budget when only a tolerance is given
-_QMC_MAX_DIM = 12  # measured in benchmarks/convergence.py up to d = 8; beyond, plain MC
+
+
+class IntegrationEstimate(Estimate):
+    r"""What `integrate` returns: an `Estimate` that says how it was made.
+
+    **Fields** (on top of `Estimate`'s):
+
+    - `method`: the method that produced `mean` (for `"auto"`, the pilot's
+      winner; `"auto"` itself only when the choice was traced under `jit`, where
+      `pilot.choice` holds it).
+    - `pilot`: for `"auto"`, the pilot's per-candidate figures (`Pilot`), else `None`.
+    - `converged`: with a tolerance, whether the standard error met it; else `None`.
+    """
+
+    method: str = eqx.field(static=True)
+    pilot: Pilot | None
+    converged: jax.Array | None
 
 
 def integrate(
@@ -84,32 +75,46 @@ def integrate(
     mesh: Mesh | None = None,
     progress: bool = False,
     batched: bool = False,
-) -> Estimate:
+) -> IntegrationEstimate:
     r"""Integrate `f` over the box $[lo, hi]$ to a tolerance or a budget, streaming.
 
     Evaluates blocks of samples until
     $\mathrm{stderr} \le \max(\mathrm{atol}, \mathrm{rtol}\cdot|\mathrm{mean}|)$
     (for every component of an array-valued `f`) or until `n` evaluations
-    (`max_n` when only a tolerance is given). With `n` alone it runs exactly
+    (`max_n` when only a tolerance is given). With `n` alone it runs at most
     `n` evaluations (rounded down to whole blocks for the block methods).
 
     **Arguments:**
 
-    - `key`: a PRNG key; block $b$ uses `fold_in(key, b)`.
+    - `key`: a PRNG key; the result is a function of `(key, n)` alone.
     - `f`: the integrand, written for one point (or batched with `batched=True`).
     - `lo`, `hi`: the box (scalars or shape `(d,)`).
     - `rtol`, `atol`: tolerances on the standard error; give either or both,
       and/or `n`.
     - `n`: the evaluation budget (a static int).
-    - `method`: `"plain"` (i.i.d. uniform, eq. 8), `"qmc"` (each block a
-      scrambled Sobol' net; variance from the spread of block means),
-      `"stratified"` (each block a jittered grid), `"adaptive"` (VEGAS+: a
-      `Grid` and its stratification trained by `jaxmc.fit.VegasPlus` on at most
-      a quarter of the budget, then each block one VEGAS+ round of $2^{14}$
-      points on the frozen grid and allocation; the budget is rounded down to
-      whole rounds), or `"auto"`: scrambled Sobol'
-      for $d \le 12$, where randomised QMC converges faster on smooth integrands
-      and whose variance is at most a small constant times plain MC's (Owen), else plain.
+    - `method`:
+        - `"auto"` (default): a pilot on a few percent of the budget measures
+          each candidate's variance per evaluation — randomised QMC and a VEGAS+
+          grid — and spends the rest on the cheapest per unit of variance
+          (`jaxmc.estimators` docs, "Choosing the method"); `est.method` names
+          the winner and `est.pilot` keeps the figures. The pilot's evaluations
+          count in `n` but not in the mean, which stays unbiased.
+        - `"qmc"`: randomised QMC that keeps its convergence rate:
+          8 independently scrambled Sobol' sequences, each walked block by block
+          as one growing net; the mean is their average and the variance
+          $s^2/8$ from their spread (Student's $t$ with 7 degrees of freedom
+          describes it: use `jaxmc.estimators.QMCEstimate.t_interval`-style
+          widths for small-sample intervals). With a tolerance the
+          stopping rule is checked when each replica holds a power of two
+          of points. On smooth integrands the error falls like $n^{-1}$ or
+          faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse than
+          plain MC (Owen's scrambled nets), in any dimension.
+        - `"adaptive"`: VEGAS+: a `Grid` and its stratification trained by
+          `jaxmc.fit.VegasPlus` on at most a quarter of the budget, then each
+          block one VEGAS+ round of $2^{14}$ points on the frozen grid and
+          allocation; the budget is rounded down to whole rounds.
+        - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
+          jittered grid; variance from the spread of block means).
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
     - `chunk`: samples evaluated per loop step (default $2^{18}$); bounds the
       memory and, with several devices, is split among them. Results do not
@@ -122,7 +127,9 @@ def integrate(
     - `progress`: print the running estimate after every chunk.
     - `batched`: `f` receives the whole `(m, d)` batch.
 
-    **Returns:** an `Estimate`.
+    **Returns:** an `IntegrationEstimate` (an `Estimate` with `method`, `pilot`
+    and `converged`). Outside `jit`, a tolerance the budget could not meet
+    warns with `jaxmc.ReliabilityWarning`.
 
     Without tolerances the loop has a fixed trip count and is differentiable;
     with tolerances it is a `while_loop` (forward-mode only).
@@ -132,6 +139,7 @@ def integrate(
         ```python
         f = lambda x: jnp.exp(-jnp.sum(x**2))
         est = jaxmc.integrate(jax.random.key(0), f, [-3.0] * 4, [3.0] * 4, rtol=1e-4)
+        print(est.mean, est.stderr, est.method)
         ```
     """
     key = check_key(key)
@@ -157,36 +165,85 @@ def integrate(
         )
     elif not isinstance(mesh, Mesh):
         raise TypeError(f"`mesh` must be a jax.sharding.Mesh, got {type(mesh).__name__}.")
-    d = 1 if lo.ndim == 0 else lo.shape[0]
-    if method == "auto":
-        method = "qmc" if d <= _QMC_MAX_DIM else "plain"
-    proposal, trained = None, 0
-    if method == "adaptive":
-        block = _adaptive_block(budget)
-        key, proposal, trained = _train_vegas_plus(key, f, lo, hi, budget, block, batched)
-        budget -= trained
-    plan = _plan(method, budget, chunk, mesh.devices.size, d, block if method == "adaptive" else 0)
     tolerant = rtol is not None or atol is not None
-    est = _integrate(
-        key,
-        proposal,
-        lo,
-        hi,
-        jnp.asarray(rtol if rtol is not None else 0.0, lo.dtype),
-        jnp.asarray(atol if atol is not None else 0.0, lo.dtype),
-        f=f,
-        method=method,
-        plan=plan,
-        mesh=mesh,
-        tolerant=tolerant,
-        progress=progress,
-        batched=batched,
-    )
-    if trained:
-        est = Estimate(est.mean, est.variance, est.n + trained, est.n_nonfinite)
+    run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,
+               jnp.asarray(rtol if rtol is not None else 0.0, lo.dtype),
+               jnp.asarray(atol if atol is not None else 0.0, lo.dtype))
+    pilot = None
+    if method == "auto" and budget < _AUTO_MIN_BUDGET:
+        method = "qmc"  # too small a budget to share with a pilot
+    if method == "auto":
+        pilot_key, key = jax.random.split(key)
+        rounds = training_rounds(budget, _adaptive_block(budget))
+        pilot, state = run_pilot(pilot_key, f, lo, hi, budget, mesh, batched, rounds)
+        spent = sum(pilot.evaluations)
+        rest = budget - spent
+        branches = (
+            lambda: run.qmc(key, rest),
+            # The grid trains on from the pilot's: the rounds it has not had yet.
+            lambda: run.adaptive(key, rest, state.grid, max(2, rounds - PILOT_ROUNDS)),
+        )
+        if is_concrete(pilot.choice):
+            method = pilot.candidates[int(pilot.choice)]
+            est = branches[int(pilot.choice)]()
+        else:  # chosen under jit: both streams are compiled, one runs
+            est = jax.lax.switch(pilot.choice, branches)
+        est = Estimate(est.mean, est.variance, est.n + spent, est.n_nonfinite)
+    elif method == "adaptive":
+        est = run.adaptive(key, budget, Grid(lo, hi, bins=ADAPT_BINS))
+    else:
+        est = run.block_method(method, key, budget)
+    converged = None
+    if tolerant:
+        tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
+        converged = jnp.all(est.stderr <= tol)
+    est = IntegrationEstimate(est.mean, est.variance, est.n, est.n_nonfinite, method, pilot, converged)
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
+    if tolerant and is_concrete(converged) and not bool(converged):
+        warnings.warn(
+            f"integrate: the tolerance was not met within the budget of {budget:,} evaluations "
+            f"(mean {np.asarray(est.mean)}, stderr {np.asarray(est.stderr)}); raise `max_n`/`n`, "
+            "or relax `rtol`/`atol`.",
+            ReliabilityWarning,
+            stacklevel=2,
+        )
     return est
+
+
+# Below this budget "auto" skips the pilot: a few thousand points cannot be shared.
+_AUTO_MIN_BUDGET = 1 << 14
+
+
+class _Run:
+    """One call's fixed settings, and a runner per method returning an `Estimate`."""
+
+    def __init__(self, f, lo, hi, chunk, mesh, tolerant, progress, batched, rtol, atol):
+        self.f, self.lo, self.hi, self.chunk, self.mesh = f, lo, hi, chunk, mesh
+        self.tolerant, self.progress, self.batched = tolerant, progress, batched
+        self.rtol, self.atol = rtol, atol
+        self.d = 1 if lo.ndim == 0 else lo.shape[0]
+
+    def _stream(self, key, frozen, run_plan):
+        return stream(
+            key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
+            mesh=self.mesh, tolerant=self.tolerant, progress=self.progress, batched=self.batched,
+        )
+
+    def block_method(self, method, key, budget):
+        return self._stream(key, None, plan(method, budget, self.chunk, self.mesh.devices.size, self.d))
+
+    def qmc(self, key, budget):
+        return self.block_method("qmc", key, budget)
+
+    def adaptive(self, key, budget, grid, rounds=None):
+        """Train a VEGAS+ grid from `grid` (`_train_vegas_plus`), then stream rounds on it frozen."""
+        block = _adaptive_block(budget)
+        rounds = training_rounds(budget, block) if rounds is None else rounds
+        key, frozen, trained = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
+        run_plan = plan("adaptive", budget - trained, self.chunk, self.mesh.devices.size, self.d, block)
+        est = self._stream(key, frozen, run_plan)
+        return Estimate(est.mean, est.variance, est.n + trained, est.n_nonfinite)
 
 
 def _adaptive_block(budget: int) -> int:
@@ -196,21 +253,25 @@ def _adaptive_block(budget: int) -> int:
     return min(BLOCK, 1 << int(math.floor(math.log2(budget // 16))))
 
 
-def _train_vegas_plus(key, f, lo, hi, budget, block, batched):
-    r"""Train a VEGAS+ grid and stratification on at most a quarter of the budget.
+def training_rounds(budget: int, block: int) -> int:
+    """VEGAS+ training rounds of `block` points for a budget: up to a quarter of it, 2 to `ADAPT_ITERATIONS`."""
+    return max(2, min(ADAPT_ITERATIONS, budget // (4 * block)))
 
-    Up to `ADAPT_ITERATIONS` rounds of `block` points (`jaxmc.fit.VegasPlus`:
-    grid refinement and adaptive stratified sampling of the map's unit cube).
-    Returns the streaming key, the frozen `(grid, counts, strata)` — the grid,
-    the points per hypercube its last round allocated for the next, and the
-    hypercubes per axis — and the number of training evaluations. Those are
-    counted in the result's `n` but not in its mean, so the streamed estimate,
-    drawn with the frozen grid and allocation, stays unbiased.
+
+def _train_vegas_plus(key, f, grid, rounds, block, batched):
+    r"""Train a VEGAS+ grid and stratification for `rounds` rounds (`training_rounds`).
+
+    Rounds of `block` points (`jaxmc.fit.VegasPlus`:
+    grid refinement and adaptive stratified sampling of the map's unit cube),
+    starting from `grid`. Returns the streaming key, the frozen
+    `(grid, counts, strata)` — the grid, the points per hypercube its last round
+    allocated for the next, and the hypercubes per axis — and the number of
+    training evaluations. Those are counted in the result's `n` but not in its
+    mean, so the streamed estimate, drawn with the frozen grid and allocation,
+    stays unbiased.
     """
-    rounds = max(2, min(ADAPT_ITERATIONS, budget // (4 * block)))
     train_key, key = jax.random.split(key)
     rule = VegasPlus()
-    grid = Grid(lo, hi, bins=ADAPT_BINS)
     _, state, _ = run_adaptation(rule, train_key, Integrand(f, batched), grid, rounds, block)
     strata = strata_per_axis(grid.dim, block, rule.max_strata)
     return key, (state.grid, state.draw.counts, strata), rounds * block
@@ -239,176 +300,3 @@ def _raise_on_nonfinite(est: Estimate) -> Estimate:
     return eqx.error_if(est, est.n_nonfinite > 0, message + ".")
 
 
-class _Plan(eqx.Module):
-    """Static sizes of a run."""
-
-    block: int = eqx.field(static=True)  # samples per block
-    blocks: int = eqx.field(static=True)  # blocks in the budget
-    budget: int = eqx.field(static=True)  # evaluations in the budget
-    per_device: int = eqx.field(static=True)  # blocks per device per step
-    steps: int = eqx.field(static=True)  # loop steps to exhaust the budget
-    strata: tuple[int, ...] = eqx.field(static=True)  # jittered-grid counts per block
-
-
-def _plan(
-    method: str, budget: int, chunk: int, devices: int, d: int, adaptive_block: int = 0
-) -> _Plan:
-    strata: tuple[int, ...] = ()
-    if method == "plain":
-        # Smaller budgets get one power-of-two block, so little is masked away.
-        block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
-        blocks = -(-budget // block)
-    else:
-        # Block methods need several blocks for a variance: at least 8.
-        if budget < 16:
-            raise ValueError(f"`n` must be >= 16 for method {method!r}, got {budget}.")
-        block = min(BLOCK, 1 << int(math.floor(math.log2(budget // 8))))
-        if method == "adaptive":  # one VEGAS+ round per block, of the size it was trained at
-            block = adaptive_block
-        if method == "stratified":
-            per_axis = int(math.floor(block ** (1.0 / d) + 1e-9))
-            if per_axis < 2:
-                raise ValueError(
-                    f"method='stratified' needs at least 2 strata per axis in a block of "
-                    f"{block}, which d={d} does not allow; use method='qmc' or 'plain'."
-                )
-            strata = (per_axis,) * d
-            block = per_axis**d
-        blocks = budget // block
-        budget = blocks * block
-    per_step = min(max(1, -(-chunk // block)), blocks)  # never more blocks than the budget
-    per_device = -(-per_step // devices)
-    steps = -(-blocks // (per_device * devices))
-    return _Plan(block, blocks, budget, per_device, steps, strata)
-
-
-def _unit_points(method: str, plan: _Plan, key: jax.Array, d: int, dtype) -> jax.Array:
-    """The block's points on the unit cube, shape `(block, d)`."""
-    if method == "plain":
-        return unit_points("uniform", key, plan.block, d, dtype=dtype)
-    # Drawn in the default float dtype, then cast: this keeps the numbers of earlier
-    # versions for float32 bounds under x64 (a float32 Sobol' draw truncates, not rounds).
-    name = "sobol" if method == "qmc" else "stratified"
-    return unit_points(name, key, plan.block, d, counts=plan.strata).astype(dtype)
-
-
-def _vegas_plus_block(key, frozen, n, f, batched):
-    r"""One VEGAS+ round on the frozen grid and allocation: one observation, its estimate.
-
-    The round's points are jittered into the hypercubes of the grid's unit cube,
-    `counts[h]` in cube $h$, mapped through the grid, and combined as
-    $\hat I = v \sum_h \bar y_h$ (§4.2); the rounds are i.i.d., so the
-    stream's variance comes from their spread.
-    """
-    grid, counts, strata = frozen
-    raw = _random.uniform(key, (n, grid.dim), grid.lo.dtype)
-    draw = stratified_unit_points(raw, counts, strata)
-    x, log_p, _ = grid.map_with_bins(draw.u)
-    fx = evaluate(f, x if grid.event_ndim else x[:, 0], batched)
-    y, bad = ratio(fx, jnp.exp(log_p))
-    bad_count = jnp.sum(bad, dtype=jnp.int32)
-    est, _ = stratified_estimate(y, draw.cube, counts, 1.0 / counts.shape[0], bad_count)
-    m = Moments(jnp.ones((), y.dtype), est.mean, jnp.zeros_like(est.mean))
-    return m, jnp.asarray(n, jnp.int32), bad_count
-
-
-@partial(
-    eqx.filter_jit,
-)
-def _integrate(key, proposal, lo, hi, rtol, atol, *, f, method, plan, mesh, tolerant, progress, batched):
-    d = 1 if lo.ndim == 0 else lo.shape[0]
-    dtype = lo.dtype
-    volume = jnp.prod(hi - lo)
-    per_sample = method == "plain"
-    axes = tuple(mesh.axis_names)
-
-    def moments_of_block(b):
-        if method == "adaptive":
-            m, evaluations, bad = _vegas_plus_block(
-                jax.random.fold_in(key, b), proposal, plan.block, f, batched
-            )
-            # Blocks past the budget (the last step's spare slots) are dropped.
-            inside = b < plan.blocks
-            m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
-            return m, jnp.where(inside, evaluations, 0), jnp.where(inside, bad, 0)
-        else:
-            u = _unit_points(method, plan, jax.random.fold_in(key, b), d, dtype)
-            x = to_box(u if lo.ndim else u[:, 0], lo, hi)
-            px = jnp.broadcast_to(1.0 / volume, (plan.block,))
-        fx = evaluate(f, x, batched)
-        y, bad = ratio(fx, px)
-        index = b * plan.block + jnp.arange(plan.block)
-        valid = index < plan.budget
-        m = block_moments(y, valid)
-        if not per_sample:
-            # The block is one randomisation: one observation, its mean.
-            m = Moments(jnp.where(m.count > 0, 1.0, 0.0).astype(dtype), m.mean, jnp.zeros_like(m.m2))
-        return m, jnp.sum(valid, dtype=jnp.int32), jnp.sum(bad & valid, dtype=jnp.int32)
-
-    single = mesh.devices.size == 1
-
-    def local(t):
-        # Device j of the mesh takes blocks [j * per_device, (j + 1) * per_device) of step t.
-        device = 0 if single else jax.lax.axis_index(axes)
-        first = (t * mesh.devices.size + device) * plan.per_device
-        blocks = first + jnp.arange(plan.per_device, dtype=jnp.int32)
-        m, evaluations, bad = jax.vmap(moments_of_block)(blocks)
-        m = merge_all(m)
-        evaluations, bad = jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
-        if single:
-            return m, evaluations, bad
-        return merge_across_devices(m, axes), jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
-
-    # One device needs no collectives; skipping shard_map there keeps compiles short.
-    sharded = local if single else jax.shard_map(
-        local, mesh=mesh, in_specs=PartitionSpec(), out_specs=PartitionSpec()
-    )
-    out_shape = jax.eval_shape(lambda: moments_of_block(jnp.int32(0))[0].mean).shape
-    start = Moments(
-        jnp.zeros((), dtype), jnp.zeros(out_shape, dtype), jnp.zeros(out_shape, dtype)
-    )
-    zero = jnp.zeros((), jnp.int32)
-
-    def step(carry, t):
-        total, evaluations, bad = carry
-        m, e, b = sharded(t)
-        total = merge(total, m)
-        carry = (total, evaluations + e, bad + b)
-        if progress:
-            jax.debug.callback(_report, *_summary(carry, volume_free=True))
-        return carry
-
-    if not tolerant:
-        carry, _ = jax.lax.scan(
-            lambda c, t: (step(c, t), None), (start, zero, zero), jnp.arange(plan.steps)
-        )
-    else:
-
-        def cond(state):
-            t, carry = state
-            est = _summary(carry)[1]
-            tol = jnp.maximum(atol, rtol * jnp.abs(est.mean))
-            # At least two units before trusting a variance estimate.
-            converged = (carry[0].count >= 2) & jnp.all(est.stderr <= tol)
-            return (t < plan.steps) & ~converged
-
-        _, carry = jax.lax.while_loop(
-            cond, lambda s: (s[0] + 1, step(s[1], s[0])), (zero, (start, zero, zero))
-        )
-    return _summary(carry)[1]
-
-
-def _summary(carry, volume_free=False):
-    total, evaluations, bad = carry
-    est = estimate_from_moments(total, evaluations, bad)
-    return (est.mean, est.stderr, evaluations) if volume_free else (None, est)
-
-
-def _report(mean, stderr, evaluations):
-    print(
-        f"\rjaxmc.integrate: n={int(evaluations):,} mean={np.asarray(mean)} "
-        f"stderr={np.asarray(stderr)}",
-        end="",
-        file=sys.stderr,
-        flush=True,
-    )

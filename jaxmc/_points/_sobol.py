@@ -118,6 +118,44 @@ def _sobol_uint32(v: jax.Array, shift: jax.Array, n: int, skip: int) -> jax.Arra
     return x if blocks * size == n else x[:n]
 
 
+def sobol_block(directions: jax.Array, shift: jax.Array, index: jax.Array, log2_size: int) -> jax.Array:
+    r"""Block `index` of a (scrambled) Sobol' sequence: points $i\,2^k, \dots, (i+1)\,2^k - 1$, as uint32.
+
+    The block's position `index` may be traced (a loop counter), so a stream can
+    walk one sequence block by block: with $k$ = `log2_size`, point
+    $i 2^k + l$ is $A_i \oplus B_l$ where $A_i$ combines the directions of the
+    high Gray-code bits of the index and $B_l$ the low ones (see
+    `_sobol_uint32`); both blocks of a split are aligned, so the points equal
+    rows $i 2^k \dots$ of `sobol` with the same directions. Every block of
+    $2^k$ points is itself a $(t, k, d)$-net, and the first $2^m$ points of
+    the sequence a $(t, m, d)$-net.
+
+    **Arguments:** `directions` (uint32 `(d, 32)`, e.g. from `sobol_scramble`),
+    `shift` (uint32 `(d,)`), `index` (int scalar), `log2_size` (static int).
+
+    **Returns:** uint32 array `(2**log2_size, d)`; map to $[0,1)$ with `uint32_to_unit`.
+    """
+    k_low = (log2_size + 1) // 2  # two tables of about sqrt(2^k) rows each
+    size_low, rows = 1 << k_low, 1 << (log2_size - k_low)
+    table_low = _xor_combine(_gray(jnp.arange(size_low, dtype=jnp.uint32)), directions, k_low)
+    h = jnp.arange(rows, dtype=jnp.uint32) + jnp.asarray(index, jnp.uint32) * np.uint32(rows)
+    high = _gray(h) << np.uint32(k_low)
+    if k_low > 0:
+        high = high ^ ((h & np.uint32(1)) << np.uint32(k_low - 1))
+    table_high = _xor_combine(high, directions, 32) ^ shift[None, :]
+    x = table_high[:, None, :] ^ table_low[None, :, :]
+    return x.reshape(rows * size_low, directions.shape[0])
+
+
+def sobol_scramble(key: jax.Array, d: int) -> tuple[jax.Array, jax.Array]:
+    """Scrambled direction numbers and digital shift of a `d`-dimensional Sobol' sequence.
+
+    The randomisation `sobol(n, d, key=key)` applies (`_lms_shift`), returned for
+    `sobol_block`: `(directions (d, 32), shift (d,))`, both uint32.
+    """
+    return _lms_shift(key, jnp.asarray(_sobol_directions()[:d]))
+
+
 def _lms_shift(key: jax.Array, v: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Linear matrix scramble + digital shift of direction numbers `v` (uint32 `(d, 32)`).
 

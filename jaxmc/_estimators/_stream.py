@@ -1,0 +1,294 @@
+r"""The streaming loop behind `integrate`: blocks, chunks, devices and tolerances.
+
+The samples are organised in *blocks* of a fixed size $B$. Block $b$ draws its
+randomness from `fold_in(key, b)` (randomised QMC: from its place in one
+scrambled sequence), so the same evaluation index gets the same point whatever
+the chunk size or the number of devices: a run is a function of `(key, n)`
+alone, up to the rounding of the final reductions. Each loop step evaluates a
+*chunk* of whole blocks, sharded over the devices of a `jax.sharding.Mesh`;
+every device reduces its blocks to `Moments`, and the devices merge theirs with
+collectives (`psum` of counts, weighted means and centred second moments). The
+running total is another `Moments` merged with Chan et al.'s update, so memory
+is bounded by the chunk and float32 stays accurate over $10^9$ samples.
+
+Three kinds of statistical unit are used:
+
+- Plain Monte Carlo treats every sample as an i.i.d. observation.
+- Stratification and VEGAS+ make the samples inside a block dependent; each
+  block is one independent randomisation (an unbiased estimate on its own) and
+  the variance comes from the spread of the block means.
+- Randomised QMC keeps $R$ *replicas*, each one scrambled Sobol' sequence
+  walked block by block (block $b$ is block $\lfloor b/R \rfloor$ of replica
+  $b \bmod R$). After $m$ blocks per replica each replica's mean is over the
+  first $m B$ points of its sequence — at powers of two a whole $(t, s, d)$-net,
+  where QMC's error falls like $O(n^{-1+\epsilon})$ or faster rather than the
+  $n^{-1/2}$ of averaging many small nets — and the variance of the final mean
+  $\bar I = \frac1R \sum_r \hat I_r$ is $s^2_R / R$ from the replicas' spread.
+  With a tolerance the loop checks it only when each replica holds a power of
+  two of points (QMCPy's `CubQMCNetG` and SciPy's `qmc_quad` sample nets the
+  same way).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import PartitionSpec
+
+from .. import _random
+from .._box import to_box
+from .._fit._vegas import stratified_unit_points
+from .._integrand import evaluate, ratio
+from .._points._common import uint32_to_unit
+from .._points._registry import unit_points
+from .._points._sobol import sobol_block, sobol_scramble
+from ..stats import (
+    Estimate,
+    Moments,
+    block_moments,
+    estimate_from_moments,
+    merge,
+    merge_across_devices,
+    merge_all,
+    stratified_estimate,
+)
+
+
+BLOCK = 1 << 14  # samples per block; power of two so Sobol' blocks are (t, m, s)-nets
+QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence (as scipy's qmc_quad)
+
+
+class Plan(eqx.Module):
+    """Static sizes of a run."""
+
+    method: str = eqx.field(static=True)
+    block: int = eqx.field(static=True)  # samples per block
+    blocks: int = eqx.field(static=True)  # blocks in the budget
+    budget: int = eqx.field(static=True)  # evaluations in the budget
+    per_step: int = eqx.field(static=True)  # blocks per loop step (all devices)
+    per_device: int = eqx.field(static=True)  # block slots per device per step
+    steps: int = eqx.field(static=True)  # loop steps to exhaust the budget
+    strata: tuple[int, ...] = eqx.field(static=True)  # jittered-grid counts per block
+    replicas: int = eqx.field(static=True)  # randomised-QMC replicas (1 otherwise)
+
+
+def plan(
+    method: str, budget: int, chunk: int, devices: int, d: int, adaptive_block: int = 0
+) -> Plan:
+    """The block size, block count and loop shape for `budget` evaluations."""
+    strata: tuple[int, ...] = ()
+    replicas = 1
+    if method in ("plain", "importance"):
+        # Smaller budgets get one power-of-two block, so little is masked away.
+        block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
+        blocks = -(-budget // block)
+    elif method == "qmc":
+        replicas = QMC_REPLICAS
+        if budget < 2 * replicas:
+            raise ValueError(f"`n` must be >= {2 * replicas} for method 'qmc', got {budget}.")
+        # At least 8 blocks per replica, so rounding down to whole blocks wastes <= 1/9.
+        per_replica = budget // replicas
+        block = min(BLOCK, 1 << int(math.floor(math.log2(max(per_replica // 8, 1)))))
+        blocks = (per_replica // block) * replicas
+        budget = blocks * block
+    else:
+        # Block methods need several blocks for a variance: at least 8.
+        if budget < 16:
+            raise ValueError(f"`n` must be >= 16 for method {method!r}, got {budget}.")
+        block = min(BLOCK, 1 << int(math.floor(math.log2(budget // 8))))
+        if method == "adaptive":  # one VEGAS+ round per block, of the size it was trained at
+            block = adaptive_block
+        if method == "stratified":
+            per_axis = int(math.floor(block ** (1.0 / d) + 1e-9))
+            if per_axis < 2:
+                raise ValueError(
+                    f"method='stratified' needs at least 2 strata per axis in a block of "
+                    f"{block}, which d={d} does not allow; use method='qmc' or 'plain'."
+                )
+            strata = (per_axis,) * d
+            block = per_axis**d
+        blocks = budget // block
+        budget = blocks * block
+    per_step = min(max(1, -(-chunk // block)), blocks)  # never more blocks than the budget
+    if method == "qmc":
+        # Whole rounds (one block of every replica), a power of two of them per step, so
+        # each replica holds a power of two of points after 1, 2, 4, ... steps.
+        rounds = max(1, per_step // replicas)
+        per_step = replicas * (1 << int(math.floor(math.log2(rounds))))
+    per_device = -(-per_step // devices)
+    steps = -(-blocks // per_step)
+    return Plan(method, block, blocks, budget, per_step, per_device, steps, strata, replicas)
+
+
+def _vegas_plus_block(key, frozen, n, f, batched):
+    r"""One VEGAS+ round on the frozen grid and allocation: one observation, its estimate.
+
+    The round's points are jittered into the hypercubes of the grid's unit cube,
+    `counts[h]` in cube $h$, mapped through the grid, and combined as
+    $\hat I = v \sum_h \bar y_h$ (§4.2); the rounds are i.i.d., so the
+    stream's variance comes from their spread.
+    """
+    grid, counts, strata = frozen
+    raw = _random.uniform(key, (n, grid.dim), grid.lo.dtype)
+    draw = stratified_unit_points(raw, counts, strata)
+    x, log_p, _ = grid.map_with_bins(draw.u)
+    fx = evaluate(f, x if grid.event_ndim else x[:, 0], batched)
+    y, bad = ratio(fx, jnp.exp(log_p))
+    bad_count = jnp.sum(bad, dtype=jnp.int32)
+    est, _ = stratified_estimate(y, draw.cube, counts, 1.0 / counts.shape[0], bad_count)
+    m = Moments(jnp.ones((), y.dtype), est.mean, jnp.zeros_like(est.mean))
+    return m, jnp.asarray(n, jnp.int32), bad_count
+
+
+def _one_hot_moments(m: Moments, slot: jax.Array, slots: int) -> Moments:
+    """Place a block's moments in row `slot` of `slots` rows (the others empty)."""
+    hot = jnp.arange(slots) == slot
+    count = jnp.where(hot, m.count, 0.0).astype(m.mean.dtype)
+
+    def place(a):
+        return jnp.where(jnp.reshape(hot, (slots,) + (1,) * a.ndim), a[None], jnp.zeros_like(a)[None])
+
+    return Moments(count, place(m.mean), place(m.m2))
+
+
+def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate:
+    """The estimate of a run's moments: i.i.d. units, or the spread of `replicas` means."""
+    if replicas == 1:
+        return estimate_from_moments(total, evaluations, bad)
+    means = total.mean
+    mean = jnp.mean(means, axis=0)
+    var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
+    return Estimate(mean=mean, variance=var, n=evaluations, n_nonfinite=bad)
+
+
+@partial(eqx.filter_jit)
+def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress, batched):
+    """Evaluate `plan.blocks` blocks (or fewer, once a tolerance is met) and reduce them."""
+    method = plan.method
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    dtype = lo.dtype
+    volume = jnp.prod(hi - lo)
+    per_sample = method in ("plain", "importance")
+    axes = tuple(mesh.axis_names)
+    if method == "qmc":
+        scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
+            jax.random.split(key, plan.replicas)
+        )
+        log2_block = plan.block.bit_length() - 1
+
+    def points_of_block(b):
+        """The block's points `x` and their density `p(x)`."""
+        if method == "importance":
+            return frozen.sample(jax.random.fold_in(key, b), plan.block)
+        if method == "qmc":
+            r, position = b % plan.replicas, b // plan.replicas
+            u = uint32_to_unit(sobol_block(scrambles[0][r], scrambles[1][r], position, log2_block), dtype)
+        elif method == "plain":
+            u = unit_points("uniform", jax.random.fold_in(key, b), plan.block, d, dtype=dtype)
+        else:
+            # Drawn in the default float dtype, then cast: this keeps the numbers of earlier
+            # versions for float32 bounds under x64 (a float32 draw truncates, not rounds).
+            u = unit_points(
+                "stratified", jax.random.fold_in(key, b), plan.block, d, counts=plan.strata
+            ).astype(dtype)
+        x = to_box(u if lo.ndim else u[:, 0], lo, hi)
+        return x, jnp.broadcast_to(1.0 / volume, (plan.block,))
+
+    def moments_of_block(b, inside):
+        if method == "adaptive":
+            m, evaluations, bad = _vegas_plus_block(
+                jax.random.fold_in(key, b), frozen, plan.block, f, batched
+            )
+            # Slots past the budget (the last step's spare ones) are dropped.
+            m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
+            return m, jnp.where(inside, evaluations, 0), jnp.where(inside, bad, 0)
+        x, px = points_of_block(b)
+        fx = evaluate(f, x, batched)
+        y, bad = ratio(fx, px)
+        index = b * plan.block + jnp.arange(plan.block)
+        valid = (index < plan.budget) & inside
+        m = block_moments(y, valid)
+        if not per_sample:
+            # The block is one randomisation: one observation, its mean.
+            unit = jnp.where(m.count > 0, 1.0, 0.0).astype(dtype)
+            m = Moments(unit, m.mean, jnp.zeros_like(m.m2))
+        if method == "qmc":
+            # Its replica's running mean weighs it by its points.
+            m = _one_hot_moments(Moments(m.count * plan.block, m.mean, m.m2), b % plan.replicas,
+                                 plan.replicas)
+        return m, jnp.sum(valid, dtype=jnp.int32), jnp.sum(bad & valid, dtype=jnp.int32)
+
+    single = mesh.devices.size == 1
+
+    def local(t):
+        # Device j takes slots [j * per_device, (j + 1) * per_device) of step t's blocks.
+        device = 0 if single else jax.lax.axis_index(axes)
+        slot = device * plan.per_device + jnp.arange(plan.per_device, dtype=jnp.int32)
+        blocks = t * plan.per_step + slot
+        inside = (slot < plan.per_step) & (blocks < plan.blocks)
+        m, evaluations, bad = jax.vmap(moments_of_block)(blocks, inside)
+        m = merge_all(m)
+        evaluations, bad = jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
+        if single:
+            return m, evaluations, bad
+        return merge_across_devices(m, axes), jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
+
+    # One device needs no collectives; skipping shard_map there keeps compiles short.
+    sharded = local if single else jax.shard_map(
+        local, mesh=mesh, in_specs=PartitionSpec(), out_specs=PartitionSpec()
+    )
+    start = _empty_like(jax.eval_shape(lambda: moments_of_block(jnp.int32(0), True)[0]))
+    zero = jnp.zeros((), jnp.int32)
+
+    def step(carry, t):
+        total, evaluations, bad = carry
+        m, e, b = sharded(t)
+        carry = (merge(total, m), evaluations + e, bad + b)
+        if progress:
+            est = stream_estimate(*carry, plan.replicas)
+            jax.debug.callback(_report, est.mean, est.stderr, est.n)
+        return carry
+
+    if not tolerant:
+        carry, _ = jax.lax.scan(
+            lambda c, t: (step(c, t), None), (start, zero, zero), jnp.arange(plan.steps)
+        )
+    else:
+
+        def cond(state):
+            t, carry = state
+            est = stream_estimate(*carry, plan.replicas)
+            tol = jnp.maximum(atol, rtol * jnp.abs(est.mean))
+            # At least two units before trusting a variance estimate; randomised QMC
+            # only at powers of two per replica (whole nets), i.e. after 1, 2, 4, ... steps.
+            if plan.replicas == 1:
+                units = carry[0].count >= 2
+            else:
+                units = (t >= 1) & ((t & (t - 1)) == 0)
+            converged = units & jnp.all(est.stderr <= tol)
+            return (t < plan.steps) & ~converged
+
+        _, carry = jax.lax.while_loop(
+            cond, lambda s: (s[0] + 1, step(s[1], s[0])), (zero, (start, zero, zero))
+        )
+    return stream_estimate(*carry, plan.replicas)
+
+
+def _empty_like(shapes: Moments) -> Moments:
+    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+
+def _report(mean, stderr, evaluations):
+    print(
+        f"\rjaxmc.integrate: n={int(evaluations):,} mean={np.asarray(mean)} "
+        f"stderr={np.asarray(stderr)}",
+        end="",
+        file=sys.stderr,
+        flush=True,
+    )
