@@ -12,7 +12,10 @@ comparison errs on no side in particular.
 Candidates, each on a small share of the budget:
 
 - `"qmc"`: `QMC_REPLICAS` scrambled Sobol' nets of a power-of-two size
-  (`pilot_qmc_points`), their spread giving $\sigma^2_m$.
+  (`pilot_sizes`), their spread giving $\sigma^2_m$. The same points, each
+  uniform, also give plain Monte Carlo's variance; when QMC beats it by
+  `QMC_CLEAR_WIN` per evaluation the integrand is smooth at this scale and the
+  grid is not tried (a grid gains far less than that on a smooth integrand).
 - `"adaptive"`: `PILOT_ROUNDS` rounds of VEGAS+ from a uniform grid
   (`jaxmc.fit.VegasPlus`), $\sigma^2_m$ of the last round. If it wins, the grid
   trains on from there; since the pilot's grid is young, its figure is
@@ -38,9 +41,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._box import to_box
+from .._checks import is_concrete
+from .._integrand import evaluate, ratio
+from .._points._common import uint32_to_unit
+from .._points._sobol import sobol_block, sobol_scramble
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
 from ..proposals import Grid
-from ._stream import QMC_REPLICAS, plan, stream
+from ..stats import Estimate
+from ._stream import QMC_REPLICAS
 
 
 # Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
@@ -51,6 +60,7 @@ PILOT_ROUNDS = 3  # VEGAS+ rounds in the pilot
 PILOT_SHARE = 1 / 16  # at most this share of the budget on each candidate's pilot
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0}  # time per evaluation, relative to a Sobol' point
 GRID_BINS = 64  # grid bins per axis for the VEGAS+ candidate
+QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
 MAX_TRAINING_GAIN = 1000.0  # most the projection credits the grid's further training
 
 
@@ -88,23 +98,47 @@ def _relative_variance(est) -> jax.Array:
     return jnp.sum(jnp.where(est.mean != 0, est.variance / mean2, est.variance))
 
 
-def run_pilot(key, f, lo, hi, budget, mesh, batched, training_rounds):
-    """Run every candidate's pilot; returns `(Pilot, VEGAS+ state)`.
+@eqx.filter_jit
+def _qmc_pilot(key, lo, hi, *, f, per_replica, batched):
+    """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points: the QMC `Estimate`
+    and the plain-MC variance per evaluation of the same points (each is uniform)."""
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    volume = jnp.prod(hi - lo)
+
+    def replica(k):
+        directions, shift = sobol_scramble(k, d)
+        u = uint32_to_unit(sobol_block(directions, shift, 0, per_replica.bit_length() - 1), lo.dtype)
+        y, bad = ratio(evaluate(f, to_box(u if lo.ndim else u[:, 0], lo, hi), batched), 1 / volume)
+        return y, jnp.sum(bad, dtype=jnp.int32)
+
+    y, bad = jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
+    means = jnp.mean(y, axis=1)
+    mean = jnp.mean(means, axis=0)
+    variance = jnp.var(means, axis=0, ddof=1) / QMC_REPLICAS
+    n = jnp.asarray(QMC_REPLICAS * per_replica, jnp.int32)
+    plain = jnp.var(jnp.reshape(y, (-1,) + y.shape[2:]), axis=0, ddof=1)
+    return Estimate(mean, variance, n, jnp.sum(bad)), Estimate(mean, plain, n, jnp.sum(bad))
+
+
+def run_pilot(key, f, lo, hi, budget, batched, training_rounds):
+    """Run the candidates' pilots; returns `(Pilot, VEGAS+ state or None)`.
 
     `training_rounds`: the VEGAS+ rounds the grid would train for in all if chosen.
+    When QMC's pilot already beats plain Monte Carlo on the same points by
+    `QMC_CLEAR_WIN` per evaluation (a smooth integrand), no grid could win and its
+    pilot is skipped (outside `jit`, where the figures are known).
     """
     per_replica, round_size = pilot_sizes(budget)
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_grid = jax.random.split(key)
-    d = 1 if lo.ndim == 0 else lo.shape[0]
-    zero = jnp.zeros((), lo.dtype)
-    qmc = stream(
-        key_qmc, None, lo, hi, zero, zero, f=f, plan=plan("qmc", qmc_n, qmc_n, mesh.devices.size, d),
-        mesh=mesh, tolerant=False, progress=False, batched=batched,
-    )
-    rule = VegasPlus()
+    qmc, plain = _qmc_pilot(key_qmc, lo, hi, f=f, per_replica=per_replica, batched=batched)
+    v_qmc = _relative_variance(qmc) * qmc_n
+    clear_win = (_relative_variance(plain) >= QMC_CLEAR_WIN * v_qmc) & jnp.any(qmc.mean != 0)
+    if is_concrete(clear_win) and bool(clear_win):
+        return Pilot(("qmc",), v_qmc[None], v_qmc[None], jnp.asarray(0), (qmc_n,)), None
     parts, state, _ = run_adaptation(
-        rule, key_grid, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), PILOT_ROUNDS, round_size
+        VegasPlus(), key_grid, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), PILOT_ROUNDS,
+        round_size,
     )
     first, last = (jax.tree.map(lambda a: a[i], parts) for i in (0, -1))
     # The grid keeps training if chosen: credit it the pilot's improvement per round for
@@ -114,13 +148,12 @@ def run_pilot(key, f, lo, hi, budget, mesh, batched, training_rounds):
     per_round = jnp.clip((v_last / v_first) ** (1 / (PILOT_ROUNDS - 1)), 0.1, 1.0)
     per_round = jnp.where(jnp.isfinite(per_round), per_round, 1.0)
     gain = jnp.maximum(per_round ** max(training_rounds - PILOT_ROUNDS, 0), 1 / MAX_TRAINING_GAIN)
-    variance = jnp.stack([_relative_variance(qmc) * qmc_n, v_last * gain * round_size])
+    variance = jnp.stack([v_qmc, v_last * gain * round_size])
     # A pilot that saw only zeros measured nothing (a peak its points missed): it never
     # beats one that saw the integrand.
     blind = jnp.stack([jnp.all(qmc.mean == 0), jnp.all(last.mean == 0)])
     variance = jnp.where(blind & ~jnp.all(blind), jnp.inf, variance)
     cost = variance * jnp.asarray([RELATIVE_COST[c] for c in CANDIDATES], variance.dtype)
-    pilot = Pilot(
-        CANDIDATES, variance, cost, jnp.argmin(cost), (qmc_n, PILOT_ROUNDS * round_size)
-    )
+    choice = jnp.where(clear_win, 0, jnp.argmin(cost))
+    pilot = Pilot(CANDIDATES, variance, cost, choice, (qmc_n, PILOT_ROUNDS * round_size))
     return pilot, state

@@ -175,14 +175,14 @@ def integrate(
     if method == "auto":
         pilot_key, key = jax.random.split(key)
         rounds = training_rounds(budget, _adaptive_block(budget))
-        pilot, state = run_pilot(pilot_key, f, lo, hi, budget, mesh, batched, rounds)
+        pilot, state = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds)
         spent = sum(pilot.evaluations)
         rest = budget - spent
         branches = (
             lambda: run.qmc(key, rest),
             # The grid trains on from the pilot's: the rounds it has not had yet.
             lambda: run.adaptive(key, rest, state.grid, max(2, rounds - PILOT_ROUNDS)),
-        )
+        )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
             est = branches[int(pilot.choice)]()
@@ -231,7 +231,9 @@ class _Run:
         )
 
     def block_method(self, method, key, budget):
-        return self._stream(key, None, plan(method, budget, self.chunk, self.mesh.devices.size, self.d))
+        run_plan = plan(method, budget, self.chunk, self.mesh.devices.size, self.d,
+                        tolerant=self.tolerant)
+        return self._stream(key, None, run_plan)
 
     def qmc(self, key, budget):
         return self.block_method("qmc", key, budget)

@@ -79,9 +79,21 @@ class Plan(eqx.Module):
 
 
 def plan(
-    method: str, budget: int, chunk: int, devices: int, d: int, adaptive_block: int = 0
+    method: str,
+    budget: int,
+    chunk: int,
+    devices: int,
+    d: int,
+    adaptive_block: int = 0,
+    tolerant: bool = False,
 ) -> Plan:
-    """The block size, block count and loop shape for `budget` evaluations."""
+    """The block size, block count and loop shape for `budget` evaluations.
+
+    Randomised QMC with a fixed budget gives each replica the largest power of
+    two of points that `QMC_REPLICAS` replicas fit in (whole nets, where its
+    error is smallest) and spends what is left on more replicas (up to 15);
+    with a tolerance there are `QMC_REPLICAS` and the nets grow.
+    """
     strata: tuple[int, ...] = ()
     replicas = 1
     if method in ("plain", "importance"):
@@ -89,13 +101,14 @@ def plan(
         block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
         blocks = -(-budget // block)
     elif method == "qmc":
-        replicas = QMC_REPLICAS
-        if budget < 2 * replicas:
-            raise ValueError(f"`n` must be >= {2 * replicas} for method 'qmc', got {budget}.")
-        # At least 8 blocks per replica, so rounding down to whole blocks wastes <= 1/9.
-        per_replica = budget // replicas
-        block = min(BLOCK, 1 << int(math.floor(math.log2(max(per_replica // 8, 1)))))
-        blocks = (per_replica // block) * replicas
+        if budget < 2 * QMC_REPLICAS:
+            raise ValueError(f"`n` must be >= {2 * QMC_REPLICAS} for method 'qmc', got {budget}.")
+        net = 1 << int(math.floor(math.log2(budget // QMC_REPLICAS)))  # points per replica
+        replicas = QMC_REPLICAS if tolerant else budget // net
+        block = min(BLOCK, net)
+        blocks = (net // block) * replicas
+        if tolerant:  # the nets grow until the tolerance or the budget stops them
+            blocks = (budget // (block * replicas)) * replicas
         budget = blocks * block
     else:
         # Block methods need several blocks for a variance: at least 8.
