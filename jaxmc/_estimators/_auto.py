@@ -48,8 +48,7 @@ from .._points._common import uint32_to_unit
 from .._points._sobol import sobol_block, sobol_scramble
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
 from ..proposals import Grid
-from ..stats import Estimate
-from ._stream import QMC_REPLICAS
+from ._stream import QMC_REPLICAS, final_net
 
 
 # Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
@@ -61,7 +60,9 @@ PILOT_SHARE = 1 / 16  # at most this share of the budget on each candidate's pil
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0}  # time per evaluation, relative to a Sobol' point
 GRID_BINS = 64  # grid bins per axis for the VEGAS+ candidate
 QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
-MAX_TRAINING_GAIN = 1000.0  # most the projection credits the grid's further training
+MAX_TRAINING_GAIN = 4.0  # most the projection credits the grid's further training
+MIN_PILOT_ESS = 32.0  # fewer effective QMC pilot samples than this measure nothing
+MAX_NET_GROWTH = 64  # most the projection lets QMC's nets grow beyond the pilot's
 
 
 class Pilot(eqx.Module):
@@ -92,32 +93,80 @@ def pilot_sizes(budget: int) -> tuple[int, int]:
     return min(max(qmc, 64), 4096), min(max(rounds, 256), 1 << 14)
 
 
-def _relative_variance(est) -> jax.Array:
+def _relative_variance(mean, variance) -> jax.Array:
     """Variance scaled by the squared mean (summed over components); scale-free."""
-    mean2 = jnp.maximum(est.mean**2, jnp.finfo(est.mean.dtype).tiny)
-    return jnp.sum(jnp.where(est.mean != 0, est.variance / mean2, est.variance))
+    mean2 = jnp.maximum(mean**2, jnp.finfo(mean.dtype).tiny)
+    return jnp.sum(jnp.where(mean != 0, variance / mean2, variance))
+
+
+class _QMCPilot(eqx.Module):
+    variance: jax.Array  # projected variance per evaluation (relative)
+    clear_win: jax.Array  # QMC beats plain MC on its points by QMC_CLEAR_WIN
+    blind: jax.Array  # saw nothing, or too few effective points to measure anything
 
 
 @eqx.filter_jit
-def _qmc_pilot(key, lo, hi, *, f, per_replica, batched):
-    """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points: the QMC `Estimate`
-    and the plain-MC variance per evaluation of the same points (each is uniform)."""
+def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
+    """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
     volume = jnp.prod(hi - lo)
 
     def replica(k):
         directions, shift = sobol_scramble(k, d)
         u = uint32_to_unit(sobol_block(directions, shift, 0, per_replica.bit_length() - 1), lo.dtype)
-        y, bad = ratio(evaluate(f, to_box(u if lo.ndim else u[:, 0], lo, hi), batched), 1 / volume)
-        return y, jnp.sum(bad, dtype=jnp.int32)
+        y, _ = ratio(evaluate(f, to_box(u if lo.ndim else u[:, 0], lo, hi), batched), 1 / volume)
+        return y
 
-    y, bad = jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
-    means = jnp.mean(y, axis=1)
-    mean = jnp.mean(means, axis=0)
-    variance = jnp.var(means, axis=0, ddof=1) / QMC_REPLICAS
-    n = jnp.asarray(QMC_REPLICAS * per_replica, jnp.int32)
-    plain = jnp.var(jnp.reshape(y, (-1,) + y.shape[2:]), axis=0, ddof=1)
-    return Estimate(mean, variance, n, jnp.sum(bad)), Estimate(mean, plain, n, jnp.sum(bad))
+    y = jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
+    n = QMC_REPLICAS * per_replica
+
+    def relative_variance_per_evaluation(values):
+        means = jnp.mean(values, axis=1)
+        variance = jnp.var(means, axis=0, ddof=1) / QMC_REPLICAS
+        return _relative_variance(jnp.mean(means, axis=0), variance) * n
+
+    full = relative_variance_per_evaluation(y)
+    half = relative_variance_per_evaluation(y[:, : per_replica // 2])  # half a net is a net
+    flat = jnp.reshape(y, (-1,) + y.shape[2:])
+    mean = jnp.mean(flat, axis=0)
+    plain = _relative_variance(mean, jnp.var(flat, axis=0, ddof=1))
+    # Effective sample size (sum |y|)^2 / sum y^2: ~1 when a single point hit a peak.
+    tiny = jnp.finfo(flat.dtype).tiny
+    ess = jnp.min(jnp.sum(jnp.abs(flat), axis=0) ** 2 / jnp.maximum(jnp.sum(flat**2, axis=0), tiny))
+    measured = ess >= MIN_PILOT_ESS
+    # QMC's variance per evaluation keeps falling as its nets grow, at the rate the pilot
+    # shows from half nets to whole ones: n^-(1+r) per replica, r in [0, 1] (0: plain MC's rate).
+    rate = jnp.clip(jnp.log2(half / full), 0.0, 1.0)
+    rate = jnp.where(jnp.isfinite(rate), rate, 0.0)
+    projected = full * jnp.asarray(growth, full.dtype) ** -rate
+    blind = jnp.all(mean == 0) | ~measured
+    return _QMCPilot(projected, (plain >= QMC_CLEAR_WIN * full) & measured, blind)
+
+
+@eqx.filter_jit
+def _grid_pilot(key, lo, hi, qmc: _QMCPilot, *, f, round_size, more_rounds, batched):
+    """`PILOT_ROUNDS` VEGAS+ rounds from a uniform grid, and the choice: `(figures, state)`."""
+    parts, state, _ = _run_adaptation(
+        VegasPlus(), key, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), PILOT_ROUNDS,
+        round_size,
+    )
+    v_first, v_last = (_relative_variance(parts.mean[i], parts.variance[i]) for i in (0, -1))
+    # The grid keeps training if chosen: credit it the pilot's improvement per round for
+    # the rounds still to come, at most 2x a round and MAX_TRAINING_GAIN in all (the gains
+    # after round 3 vary from none, on a discontinuity, to 1000x, on a 5-D posterior).
+    per_round = jnp.clip((v_last / v_first) ** (1 / (PILOT_ROUNDS - 1)), 0.5, 1.0)
+    per_round = jnp.where(jnp.isfinite(per_round), per_round, 1.0)
+    gain = jnp.maximum(per_round**more_rounds, 1 / MAX_TRAINING_GAIN)
+    variance = jnp.stack([qmc.variance, v_last * gain * round_size])
+    # A pilot that saw only zeros (a peak its points missed), or whose mean a handful of
+    # points carried, measured nothing: it never beats one that measured the integrand.
+    # If neither did, the grid, which keeps looking as it trains, is the better bet.
+    blind = jnp.stack([qmc.blind, jnp.all(parts.mean[-1] == 0)])
+    variance = jnp.where(blind & ~jnp.all(blind), jnp.inf, variance)
+    cost = variance * jnp.asarray([RELATIVE_COST[c] for c in CANDIDATES], variance.dtype)
+    choice = jnp.where(qmc.clear_win, 0, jnp.where(jnp.all(blind), 1, jnp.argmin(cost)))
+    choice = choice.astype(jnp.int32)
+    return (variance, cost, choice), state
 
 
 def run_pilot(key, f, lo, hi, budget, batched, training_rounds):
@@ -131,29 +180,12 @@ def run_pilot(key, f, lo, hi, budget, batched, training_rounds):
     per_replica, round_size = pilot_sizes(budget)
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_grid = jax.random.split(key)
-    qmc, plain = _qmc_pilot(key_qmc, lo, hi, f=f, per_replica=per_replica, batched=batched)
-    v_qmc = _relative_variance(qmc) * qmc_n
-    clear_win = (_relative_variance(plain) >= QMC_CLEAR_WIN * v_qmc) & jnp.any(qmc.mean != 0)
-    if is_concrete(clear_win) and bool(clear_win):
-        return Pilot(("qmc",), v_qmc[None], v_qmc[None], jnp.asarray(0), (qmc_n,)), None
-    parts, state, _ = run_adaptation(
-        VegasPlus(), key_grid, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), PILOT_ROUNDS,
-        round_size,
+    growth = min(final_net(budget - qmc_n) / per_replica, MAX_NET_GROWTH)
+    qmc = _qmc_pilot(key_qmc, lo, hi, f=f, per_replica=per_replica, growth=growth, batched=batched)
+    if is_concrete(qmc.clear_win) and bool(qmc.clear_win):
+        return Pilot(("qmc",), qmc.variance[None], qmc.variance[None], jnp.asarray(0, jnp.int32), (qmc_n,)), None
+    (variance, cost, choice), state = _grid_pilot(
+        key_grid, lo, hi, qmc, f=f, round_size=round_size,
+        more_rounds=max(training_rounds - PILOT_ROUNDS, 0), batched=batched,
     )
-    first, last = (jax.tree.map(lambda a: a[i], parts) for i in (0, -1))
-    # The grid keeps training if chosen: credit it the pilot's improvement per round for
-    # the rounds still to come, at most MAX_TRAINING_GAIN in all (measured gains from round
-    # 3 to 10: 8x on a smooth product, 30x on a 4-D peak, 200-3000x on a 5-D posterior).
-    v_first, v_last = _relative_variance(first), _relative_variance(last)
-    per_round = jnp.clip((v_last / v_first) ** (1 / (PILOT_ROUNDS - 1)), 0.1, 1.0)
-    per_round = jnp.where(jnp.isfinite(per_round), per_round, 1.0)
-    gain = jnp.maximum(per_round ** max(training_rounds - PILOT_ROUNDS, 0), 1 / MAX_TRAINING_GAIN)
-    variance = jnp.stack([v_qmc, v_last * gain * round_size])
-    # A pilot that saw only zeros measured nothing (a peak its points missed): it never
-    # beats one that saw the integrand.
-    blind = jnp.stack([jnp.all(qmc.mean == 0), jnp.all(last.mean == 0)])
-    variance = jnp.where(blind & ~jnp.all(blind), jnp.inf, variance)
-    cost = variance * jnp.asarray([RELATIVE_COST[c] for c in CANDIDATES], variance.dtype)
-    choice = jnp.where(clear_win, 0, jnp.argmin(cost))
-    pilot = Pilot(CANDIDATES, variance, cost, choice, (qmc_n, PILOT_ROUNDS * round_size))
-    return pilot, state
+    return Pilot(CANDIDATES, variance, cost, choice, (qmc_n, PILOT_ROUNDS * round_size)), state

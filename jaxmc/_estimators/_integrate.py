@@ -100,15 +100,17 @@ def integrate(
           the winner and `est.pilot` keeps the figures. The pilot's evaluations
           count in `n` but not in the mean, which stays unbiased.
         - `"qmc"`: randomised QMC that keeps its convergence rate:
-          8 independently scrambled Sobol' sequences, each walked block by block
-          as one growing net; the mean is their average and the variance
-          $s^2/8$ from their spread (Student's $t$ with 7 degrees of freedom
-          describes it: use `jaxmc.estimators.QMCEstimate.t_interval`-style
-          widths for small-sample intervals). With a tolerance the
-          stopping rule is checked when each replica holds a power of two
-          of points. On smooth integrands the error falls like $n^{-1}$ or
-          faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse than
-          plain MC (Owen's scrambled nets), in any dimension.
+          $R$ independently scrambled Sobol' sequences, each walked block by
+          block as one growing net; the mean is their average and the variance
+          $s^2/R$ from their spread. With `n`, each replica gets the largest
+          power of two of points that 5 replicas fit in and the rest of the
+          budget buys more replicas ($R$ = 5…9); with a tolerance $R = 8$ and
+          the stopping rule is checked when each replica holds a power of two
+          of points. Few replicas make the error bar itself uncertain (Student's
+          $t$ with $R - 1$ degrees of freedom: a 2-sigma interval covers about
+          88% at $R = 5$). On smooth integrands the error falls like $n^{-1}$
+          or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
+          than plain MC (Owen's scrambled nets), in any dimension.
         - `"adaptive"`: VEGAS+: a `Grid` and its stratification trained by
           `jaxmc.fit.VegasPlus` on at most a quarter of the budget, then each
           block one VEGAS+ round of $2^{14}$ points on the frozen grid and
