@@ -10,7 +10,15 @@ import pytest
 
 import jaxmc
 from jaxmc.fit import FitResult, adapt, fit, fit_on_samples
-from jaxmc.proposals import GaussianMixture, Grid, Mixture, Partition, PiecewiseLinear, Uniform
+from jaxmc.proposals import (
+    Flow,
+    GaussianMixture,
+    Grid,
+    Mixture,
+    Partition,
+    PiecewiseLinear,
+    Uniform,
+)
 
 from .helpers import box, peak, per_sample_variance
 
@@ -413,13 +421,15 @@ def test_partition_allocation():
 
 def test_fit_partition_masses():
     """A Partition's cell masses are parameters: BFGS on the variance objective cuts the
-    variance of a grown partition whose masses were scrambled."""
+    variance of a grown partition whose masses were scrambled. (BFGS is passed explicitly:
+    `fit`'s default for a Partition is the growth rule, which resets the masses itself.)"""
     f = peak(2, s=0.1)
     lo, hi = box(2)
     _, part = adapt(jax.random.key(0), f, Partition(lo, hi, 64), iterations=3,
                     n_per_iteration=512)
     scrambled = eqx.tree_at(lambda p: p.logits, part, jnp.zeros_like(part.logits))
-    res = eqx.filter_jit(lambda k, q: fit(k, f, q, 2048, max_steps=100))(
+    bfgs = optx.BFGS(rtol=1e-5, atol=1e-5)
+    res = eqx.filter_jit(lambda k, q: fit(k, f, q, 2048, solver=bfgs, max_steps=100))(
         jax.random.key(1), scrambled
     )
     k = jax.random.key(2)
@@ -520,3 +530,38 @@ def test_fit_default_for_a_grid_is_the_vegas_rule():
     explicit = fit(jax.random.key(30), f, Grid(lo, hi), 256, solver=optx.BFGS(1e-5, 1e-5),
                    max_steps=2)
     assert int(explicit.steps) <= 2
+
+
+_DEFAULT_FIT_PROPOSALS = {
+    "Grid": lambda lo, hi: Grid(lo, hi),
+    "PiecewiseLinear": lambda lo, hi: PiecewiseLinear(lo, hi),
+    "Mixture": lambda lo, hi: Mixture(
+        (GaussianMixture(jax.random.key(1), lo, hi, 4), Uniform(lo, hi)), (0.9, 0.1)
+    ),
+    "Partition": lambda lo, hi: Partition(lo, hi),
+    # A small flow keeps the test quick; its default fit is the same for any size.
+    "Flow": lambda lo, hi: Flow(jax.random.key(1), lo, hi, layers=2, hidden=16),
+    "GaussianMixture": lambda lo, hi: GaussianMixture(jax.random.key(1), lo, hi),
+}
+
+
+@pytest.mark.parametrize("name", list(_DEFAULT_FIT_PROPOSALS))
+def test_fit_default_improves_every_proposal_on_4d_peak(name):
+    """`fit` with its defaults (VEGAS rounds, then each type fitted to the weighted samples)
+    cuts the per-sample variance on a 4-D peak of width 0.05 at least 10x, against the
+    smaller of uniform sampling's (exact) and the unfitted proposal's (measured): the
+    unfitted Grid, PiecewiseLinear, Partition and Flow are (near) uniform, a random mixture
+    is arbitrary. Measured 38x (Partition) to ~30000x (GaussianMixture); a fitted density's
+    variance estimate on 2^16 samples is good to a few per cent, so 10x cannot flake."""
+    d, s = 4, 0.05
+    lo, hi = box(d)
+    f = peak(d, centre=0.5, s=s)
+    v_uniform = (4 * np.pi * s * s) ** (-d / 2) - 1.0  # int f^2 - (int f)^2, tails ~1e-9
+    start = _DEFAULT_FIT_PROPOSALS[name](lo, hi)
+    # max_steps bounds the flow's Adam steps (the others run min(max_steps, 10) rounds).
+    res = fit(jax.random.key(0), f, start, 2**12, max_steps=64)
+    assert type(res.proposal) is type(start) and bool(jnp.isfinite(res.loss))
+    k = jax.random.key(1)
+    before = min(v_uniform, float(per_sample_variance(k, f, start, 2**16)))
+    after = float(per_sample_variance(k, f, res.proposal, 2**16))
+    assert before / after >= 10, (name, before, after)

@@ -253,12 +253,12 @@ def _camel(alpha):
 
 
 def test_fit_camel_reduces_variance(key):
-    """`fit`'s default for a flow: minimise E_p[(f/p)^2] with Adam (OptaxMinimiser) on
-    fresh reparameterised samples each step; the variance per evaluation must drop >= 10x."""
+    """`fit`'s default for a flow: VEGAS rounds find the camel's modes, then Adam minimises
+    the forward KL to |f|/I on a fresh batch from the grid each step; the variance per
+    evaluation must drop >= 10x."""
     f = _camel(0.1)
     lo, hi = jnp.zeros(2), jnp.ones(2)
-    # A small flow and budget to keep the test quick (4 layers, 64 hidden units,
-    # 200 steps of 1024 samples reach ~100x on this problem).
+    # A small flow and budget to keep the test quick.
     flow = Flow(key, lo, hi, layers=2, hidden=32)
     # The default initialisation is close to uniform.
     _, pdf0 = flow.sample(jax.random.key(4), 512)
@@ -270,7 +270,8 @@ def test_fit_camel_reduces_variance(key):
     np.testing.assert_array_equal(fitted.lo, lo)  # the box is not a parameter
     losses = np.asarray(res.losses)
     assert np.all(np.isfinite(losses))
-    assert losses[-20:].mean() < losses[:20].mean() - 1.0
+    # The divergence from the near-uniform start is -H(p_f) ~ 1.77 nats; it ends near 0.
+    assert losses[0] > 1.5 and losses[-20:].mean() < losses[0] - 1.0, (losses[0], losses[-20:])
 
     n = 2**16
     est_flow = jaxmc.importance(jax.random.key(2), f, fitted, n)
@@ -284,16 +285,21 @@ def test_fit_camel_reduces_variance(key):
 
 
 def test_fit_default_solver_for_flows(key):
-    """A flow (alone or in a Mixture) defaults to Adam on fresh samples for exactly
-    `max_steps` steps; other proposals to BFGS on fixed samples."""
+    """A flow's default fit: VEGAS rounds, then Adam on the forward KL for exactly
+    `max_steps` steps. Its gradient fit (any other objective) defaults to Adam on fresh
+    samples for exactly `max_steps` steps; other proposals' to BFGS on fixed samples."""
     f = _camel(0.2)
     lo, hi = jnp.zeros(2), jnp.ones(2)
     flow = Flow(key, lo, hi, layers=2, hidden=8)
     adam = optx.OptaxMinimiser(optax.adam(3e-3), rtol=0.0, atol=0.0)
     fit = lambda prop, **kw: jaxmc.fit.fit(jax.random.key(1), f, prop, 128, max_steps=6, **kw)
-    default, explicit = fit(flow), fit(flow, solver=adam, resample=True)
-    assert default.losses.shape == (6,) and int(default.steps) == 6
-    np.testing.assert_array_equal(default.losses, explicit.losses)
+    default = fit(flow)
+    assert default.losses.shape == (6,) and int(default.steps) == 6 + 6  # rounds + steps
+    gradient, explicit = fit(flow, objective="chi2"), fit(
+        flow, objective="chi2", solver=adam, resample=True
+    )
+    assert gradient.losses.shape == (6,) and int(gradient.steps) == 6
+    np.testing.assert_array_equal(gradient.losses, explicit.losses)
     # One reused batch: no fresh samples, so no per-step losses.
     assert fit(flow, reuse=True).losses is None
     # (Each fit compiles anew, so the other cases check the choice, not a run.)

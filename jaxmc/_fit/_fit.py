@@ -5,7 +5,9 @@ $M_2(\theta) - I^2$ with second moment $M_2(\theta) = E_p[(f/p)^2] = \int f^2/p$
 so minimising $M_2$ minimises the variance. `fit` hands a sample-average
 approximation of $\log M_2$ (or of another objective) to an optimistix
 minimiser, over the proposal's parameters — its inexact-array leaves apart from
-the box bounds (`eqx.partition`/`eqx.combine`).
+the box bounds (`eqx.partition`/`eqx.combine`). By default the jaxmc proposals
+are instead fitted to the importance-weighted samples of a few VEGAS rounds
+(`_default_fit`).
 """
 
 from __future__ import annotations
@@ -22,11 +24,11 @@ from .. import _random
 from .._box import log_volume, to_box
 from .._checks import check_callable, check_choice, check_count, check_key
 from .._integrand import evaluate
-from ..proposals import Grid, check_proposal, weighted_draw
+from ..proposals import check_proposal, weighted_draw
+from ._default_fit import default_fit, has_default_fit
 from ._objectives import OBJECTIVES, log_abs, objective_loss
-from ._rule import Integrand, run_adaptation
+from ._rule import Integrand
 from ._solvers import check_solver, minimise, run_steps, split_parameters
-from ._vegas import Vegas
 
 
 class FitResult(eqx.Module):
@@ -41,7 +43,7 @@ class FitResult(eqx.Module):
     - `steps`: the number of solver steps taken.
     - `result`: an `optimistix.RESULTS` item (`successful`, or why it stopped).
     - `losses`: the loss at every step for `resample=True` (shape `(max_steps,)`),
-      else `None`.
+      or a flow's divergence at every step of its default fit, else `None`.
     """
 
     proposal: Any
@@ -106,7 +108,42 @@ def fit(
 ) -> FitResult:
     r"""Fit `proposal` to `f` by minimising the importance estimator's variance.
 
-    The default objective is the log of the second moment
+    **Default: fit to VEGAS's weighted samples.** With no `solver` and the
+    default `objective`, `reuse`, `resample` and `filter_spec`, the jaxmc
+    proposals are not fitted by a gradient solver: a sample average of the
+    variance is flat where the proposal puts no samples, so from a start that
+    barely sees a narrow peak the solver drifts instead of finding it. Instead
+    $R = $ `min(max_steps, 10)` rounds of `n` points of the VEGAS rule
+    (`jaxmc.fit.Vegas`) on a 64-bin `Grid` find where $|f|$ is, and the
+    proposal is fitted to the last round's samples $x_i \sim q$ with weights
+    $w_i \propto |f(x_i)|/q(x_i)$ by minimising the forward divergence
+    $$D(p_f \| p_\theta) = \text{const} - \textstyle\sum_i w_i \log p_\theta(x_i),
+    \qquad p_f = |f|/I,$$
+    whose minimiser over all densities is $p_f$, the zero-variance density
+    (adaptive importance sampling as in population Monte Carlo, Cappé et al.
+    2008, and neural importance sampling):
+
+    - `Grid`: the $R$ VEGAS rounds are run on the proposal itself (a gradient
+      solver stalls on a grid's piecewise-constant density).
+    - `Partition`: $R$ rounds of MISER-like growth (`jaxmc.fit.PartitionGrowth`)
+      instead, when `n >= 4 * max_cells` (else the gradient fit below).
+    - `GaussianMixture`, `PiecewiseLinear`: expectation-maximisation on the
+      weighted samples (`GaussianMixture.from_samples`,
+      `PiecewiseLinear.from_samples`); the starting parameters are not used.
+    - `Flow`: `max_steps` steps of Adam (learning rate $10^{-2}$) on
+      $D(p_f \| p_\theta)$, each on a fresh batch of `n` points from the final
+      grid (positive on the whole box, so no region is starved); `losses`
+      holds the divergence at every step.
+    - `Mixture` (of these, or of parameterless densities such as `Uniform`):
+      each component as it would be fitted alone; fixed weights stay.
+
+    `steps` is then $R$ (plus `max_steps` for a flow) and `loss` is the fitted
+    proposal's $\log E_p[(f/p)^2]$ on the last round's samples, reweighted.
+    Every other case (another proposal type, an explicit `solver`, or any of
+    those options, or `steps_per_batch` > 1) is the gradient fit that follows;
+    `defensive` applies to it alone.
+
+    **Gradient fit.** The objective is the log of the second moment
     $$L(\theta) = \log \sum_i w_i \frac{f(x_i)^2}{p_\theta(x_i)^2},\qquad
     x_i = T_\theta(u_i),$$
     a sample average over `n` reparameterised draws with the base randomness
@@ -140,19 +177,17 @@ def fit(
     - `proposal`: a jaxmc proposal (`GaussianMixture`, `Grid`, `Flow`,
       `Mixture`, or any equinox Module with `sample`/`log_pdf`).
     - `n`: samples in the objective (static int).
-    - `solver`: any `optimistix.AbstractMinimiser`; default
+    - `solver`: any `optimistix.AbstractMinimiser`. Default: the fit to VEGAS's
+      samples above for the jaxmc proposals; otherwise
       `optimistix.BFGS(rtol=1e-5, atol=1e-5)` (`optimistix.LBFGS` above 2000
-      parameters). For a `Grid` (objective `"variance"`, no `reuse`, `resample`
-      or `filter_spec`) the default
-      is the VEGAS refinement instead of a solver: `min(max_steps, 10)` rounds of
-      `n` points (`jaxmc.fit.Vegas`), since a gradient solver stalls on a grid's
-      piecewise-constant density; `steps` counts the rounds. For a `Flow` (or a proposal containing one) the default is
-      stochastic, as in neural importance sampling: Adam,
+      parameters), or for a `Flow` (or a proposal containing one, e.g. with
+      `resample=True`) a stochastic one, as in neural importance sampling: Adam,
       `optimistix.OptaxMinimiser(optax.adam(3e-3), rtol=0, atol=0)`, run for
       exactly `max_steps` steps on fresh samples (`resample` defaults to `True`).
       With other stochastic solvers pass `resample=True` yourself.
     - `objective`: `"variance"` (default), `"chi2"`, `"kl"` or `"reverse_kl"`.
-    - `max_steps`: solver step limit (with `resample=True`, the exact number).
+    - `max_steps`: solver step limit (with `resample=True`, the exact number). For
+      the default fits above: `min(max_steps, 10)` rounds, and a flow's Adam steps.
     - `batched`: `f` takes a batch.
     - `reuse`: fit on one batch from the frozen initial proposal.
     - `resample`: run exactly `max_steps` solver steps on fresh base samples
@@ -204,9 +239,19 @@ def fit(
     n = check_count(n)
     max_steps = check_count(max_steps, "max_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
-    vegas = objective == "variance" and not (reuse or resample or filter_spec is not None)
-    if solver is None and isinstance(proposal, Grid) and vegas:
-        return _vegas_fit(key, f, proposal, n, max_steps, batched)
+    steps_per_batch = check_count(steps_per_batch, "steps_per_batch")
+    if max_steps % steps_per_batch:
+        raise ValueError(
+            f"`max_steps` = {max_steps} must be a multiple of `steps_per_batch` = {steps_per_batch}."
+        )
+    defensive = _check_defensive(defensive)
+    # Any option of the gradient fit asks for it.
+    plain = objective == "variance" and steps_per_batch == 1 and not (
+        reuse or resample or filter_spec is not None
+    )
+    if solver is None and plain and has_default_fit(proposal, n):
+        fitted, loss, steps, losses = default_fit(key, Integrand(f, batched), proposal, n, max_steps)
+        return FitResult(fitted, loss, steps, optx.RESULTS.successful, losses)
     params, static = split_parameters(proposal, filter_spec)
     default_solver = solver is None
     solver = check_solver(solver, proposal, params)
@@ -214,15 +259,8 @@ def fit(
         # A stochastic default (the flows' Adam) gets fresh samples at every step, unless
         # the caller asked to fit on one reused batch.
         resample = default_solver and isinstance(solver, optx.OptaxMinimiser) and not reuse
-
-    steps_per_batch = check_count(steps_per_batch, "steps_per_batch")
-    if max_steps % steps_per_batch:
-        raise ValueError(
-            f"`max_steps` = {max_steps} must be a multiple of `steps_per_batch` = {steps_per_batch}."
-        )
     if steps_per_batch > 1 and not resample:
         raise ValueError("`steps_per_batch` > 1 needs `resample=True`.")
-    defensive = _check_defensive(defensive)
     frozen = reuse or objective == "kl"
     # One frozen batch gets no uniform share: maximising a weighted likelihood on a fixed
     # sample can put a spike on one heavily weighted uniform point (a mixture component
@@ -280,32 +318,6 @@ def fit(
         loss=loss(params, args),
         steps=steps,
         result=result,
-    )
-
-
-# Rounds of the VEGAS rule that `fit` runs for a `Grid` with the default solver: the
-# grid settles in a handful (vegas's own examples train for about ten).
-_VEGAS_ROUNDS = 10
-
-
-def _vegas_fit(key, f, grid, n: int, max_steps: int, batched: bool) -> FitResult:
-    r"""`fit`'s default for a `Grid`: `min(max_steps, 10)` rounds of the VEGAS rule on `n` points.
-
-    A gradient solver stalls on a grid (the density at a fixed point jumps when an
-    edge crosses it); the VEGAS refinement minimises the same variance directly.
-    The loss is $\log$ of the last round's second moment of $f/p$.
-    """
-    rounds = min(max_steps, _VEGAS_ROUNDS)
-    rule = Vegas()
-    _, state, samples = run_adaptation(
-        rule, key, Integrand(f, batched), grid, rounds, n, keep_samples=True
-    )
-    loss = objective_loss("variance", log_abs(samples.fx), samples.log_q, samples.weights)
-    return FitResult(
-        proposal=rule.proposal(state),
-        loss=loss,
-        steps=jnp.asarray(rounds),
-        result=optx.RESULTS.successful,
     )
 
 
