@@ -251,10 +251,15 @@ class _Run:
 
 
 def _adaptive_block(budget: int) -> int:
-    """Points per VEGAS+ round of method="adaptive": 2^14, fewer for small budgets (>= 16 rounds)."""
+    """Points per VEGAS+ round of method="adaptive": about budget/40 as a power of two, 256 to 2^14.
+
+    Small rounds let the grid train for its ten rounds on a quarter of the budget
+    (measured on vegas's 4-D Gaussian at 1e5: rounds of 2^11 halve the error of
+    rounds of 2^12); beyond 2^14 larger rounds gained nothing.
+    """
     if budget < 16 * 256:
         raise ValueError(f"method='adaptive' needs a budget of at least {16 * 256}, got {budget}.")
-    return min(BLOCK, 1 << int(math.floor(math.log2(budget // 16))))
+    return min(BLOCK, max(256, 1 << int(math.floor(math.log2(budget // 40)))))
 
 
 def training_rounds(budget: int, block: int) -> int:
