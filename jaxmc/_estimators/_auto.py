@@ -4,35 +4,39 @@ The figure of merit is the cost of a unit of variance. A method whose estimate
 from $m$ evaluations has variance $\sigma^2_m$ has *variance per evaluation*
 $v = m\,\sigma^2_m$; spending the remaining $n$ evaluations on it gives
 variance about $v/n$, at a cost proportional to $c\,n$ with $c$ its time per
-evaluation, so the winner minimises $v \cdot c$. For the candidates here
-$v$ only overstates the final variance — randomised QMC and VEGAS+
-stratification improve faster than $1/n$, and the grid keeps adapting — so the
-comparison errs on no side in particular.
+evaluation, so the winner minimises $v \cdot c$.
 
-Candidates, each on a small share of the budget:
+The candidates:
 
 - `"qmc"`: `QMC_REPLICAS` scrambled Sobol' nets of a power-of-two size
-  (`pilot_sizes`), their spread giving $\sigma^2_m$. The same points, each
-  uniform, also give plain Monte Carlo's variance; when QMC beats it by
-  `QMC_CLEAR_WIN` per evaluation the integrand is smooth at this scale and the
-  grid is not tried (a grid gains far less than that on a smooth integrand).
-- `"adaptive"`: `PILOT_ROUNDS` rounds of VEGAS+ from a uniform grid
-  (`jaxmc.fit.VegasPlus`), $\sigma^2_m$ of the last round. If it wins, the grid
-  trains on from there; since the pilot's grid is young, its figure is
-  projected over the rounds still to come at the pilot's own geometric rate of
-  improvement $(v_3/v_1)^{1/2}$ per round (clipped to $[0.1, 1]$, at most
-  `MAX_TRAINING_GAIN` in all).
+  (`pilot_qmc_points`, at most 1/16 of the budget), their spread giving
+  $\sigma^2_m$. QMC's $v$ keeps falling as its nets grow: the pilot measures
+  the rate from quarter to half to whole nets (the first $2^k$ points of a net
+  are a net), $\sigma^2 \propto m^{-1-r}$ with $r \in [0, 1]$, and projects
+  $v$ to the final net size at that rate (at most `MAX_NET_GROWTH` times the
+  pilot's size: small nets show pre-asymptotic rates). The same points, each
+  uniform, also give plain Monte Carlo's variance: when QMC beats it by
+  `QMC_CLEAR_WIN` per evaluation, the integrand is smooth at this scale, no
+  grid gains that much, and the grid is not trained. A pilot whose mean a
+  handful of points carried (effective sample size below `MIN_PILOT_ESS`:
+  a narrow peak) measured nothing.
+- `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
+  (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
+  $\sigma^2_m$ of its last round. The pilot is the whole training because a
+  young grid's variance says little of the trained one's (measured after 3 and
+  10 rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a
+  5-D posterior). If the grid wins it streams on, frozen; if QMC wins, the
+  training was the price of knowing.
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
 readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
 training and the stratified allocation make a VEGAS+ evaluation of a cheap
-4-D integrand about 4x dearer than a Sobol' point on a CPU (0.17 s against
-0.04 s per $10^6$ in steady state), and about as dear for an integrand that
-costs more than the map; 3 sits between. The pilot's evaluations count in the result's `n` but not in its
-mean: the streamed estimate uses fresh randomness, independent of the choice,
-so it stays unbiased.
+integrand 4-7x dearer than a Sobol' point on a CPU (0.17 s against 0.04 s per
+$10^6$ in 4-D, steady state), and about as dear for an integrand that costs
+more than the map; 3 sits between. The pilot's evaluations count in the
+result's `n` but not in its mean: the streamed estimate uses fresh randomness,
+independent of the choice, so it stays unbiased.
 """
-
 from __future__ import annotations
 
 import math
@@ -55,14 +59,12 @@ from ._stream import QMC_REPLICAS, final_net
 run_adaptation = eqx.filter_jit(_run_adaptation)
 
 CANDIDATES = ("qmc", "adaptive")
-PILOT_ROUNDS = 3  # VEGAS+ rounds in the pilot
-PILOT_SHARE = 1 / 16  # at most this share of the budget on each candidate's pilot
+PILOT_SHARE = 1 / 16  # at most this share of the budget on the QMC pilot
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0}  # time per evaluation, relative to a Sobol' point
 GRID_BINS = 64  # grid bins per axis for the VEGAS+ candidate
 QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
-MAX_TRAINING_GAIN = 4.0  # most the projection credits the grid's further training
 MIN_PILOT_ESS = 32.0  # fewer effective QMC pilot samples than this measure nothing
-MAX_NET_GROWTH = 64  # most the projection lets QMC's nets grow beyond the pilot's
+MAX_NET_GROWTH = 8  # most the projection lets QMC's nets grow beyond the pilot's (its rate is pre-asymptotic)
 
 
 class Pilot(eqx.Module):
@@ -85,12 +87,10 @@ class Pilot(eqx.Module):
     evaluations: tuple[int, ...] = eqx.field(static=True)
 
 
-def pilot_sizes(budget: int) -> tuple[int, int]:
-    """`(points per QMC replica, points per VEGAS+ round)`, powers of two within `PILOT_SHARE`."""
-    share = max(budget * PILOT_SHARE, 1)
-    qmc = 1 << int(math.floor(math.log2(max(share / QMC_REPLICAS, 1))))
-    rounds = 1 << int(math.floor(math.log2(max(share / PILOT_ROUNDS, 1))))
-    return min(max(qmc, 64), 4096), min(max(rounds, 256), 1 << 14)
+def pilot_qmc_points(budget: int) -> int:
+    """Points per replica of the QMC pilot: a power of two, 64 to 4096, within `PILOT_SHARE`."""
+    share = max(budget * PILOT_SHARE / QMC_REPLICAS, 1)
+    return min(max(1 << int(math.floor(math.log2(share))), 64), 4096)
 
 
 def _relative_variance(mean, variance) -> jax.Array:
@@ -126,7 +126,9 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
         return _relative_variance(jnp.mean(means, axis=0), variance) * n
 
     full = relative_variance_per_evaluation(y)
-    half = relative_variance_per_evaluation(y[:, : per_replica // 2])  # half a net is a net
+    # The first half (quarter) of a net is a net: the rate between sizes, measured twice.
+    half = relative_variance_per_evaluation(y[:, : per_replica // 2])
+    quarter = relative_variance_per_evaluation(y[:, : per_replica // 4])
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
     mean = jnp.mean(flat, axis=0)
     plain = _relative_variance(mean, jnp.var(flat, axis=0, ddof=1))
@@ -135,8 +137,10 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
     ess = jnp.min(jnp.sum(jnp.abs(flat), axis=0) ** 2 / jnp.maximum(jnp.sum(flat**2, axis=0), tiny))
     measured = ess >= MIN_PILOT_ESS
     # QMC's variance per evaluation keeps falling as its nets grow, at the rate the pilot
-    # shows from half nets to whole ones: n^-(1+r) per replica, r in [0, 1] (0: plain MC's rate).
-    rate = jnp.clip(jnp.log2(half / full), 0.0, 1.0)
+    # shows from quarter to half and half to whole nets (the smaller of the two: each is
+    # a ratio of 8-replica variances, noisy): n^-(1+r) per replica, r in [0, 1], 0 being
+    # plain MC's rate.
+    rate = jnp.clip(jnp.minimum(jnp.log2(quarter / half), jnp.log2(half / full)), 0.0, 1.0)
     rate = jnp.where(jnp.isfinite(rate), rate, 0.0)
     projected = full * jnp.asarray(growth, full.dtype) ** -rate
     blind = jnp.all(mean == 0) | ~measured
@@ -144,40 +148,35 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 
 
 @eqx.filter_jit
-def _grid_pilot(key, lo, hi, qmc: _QMCPilot, *, f, round_size, more_rounds, batched):
-    """`PILOT_ROUNDS` VEGAS+ rounds from a uniform grid, and the choice: `(figures, state)`."""
+def _grid_pilot(key, lo, hi, qmc: _QMCPilot, *, f, rounds, round_size, batched):
+    """`rounds` VEGAS+ rounds from a uniform grid (its whole training), and the choice:
+    `((variance, cost, choice), state)`."""
     parts, state, _ = _run_adaptation(
-        VegasPlus(), key, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), PILOT_ROUNDS,
-        round_size,
+        VegasPlus(), key, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), rounds, round_size
     )
-    v_first, v_last = (_relative_variance(parts.mean[i], parts.variance[i]) for i in (0, -1))
-    # The grid keeps training if chosen: credit it the pilot's improvement per round for
-    # the rounds still to come, at most 2x a round and MAX_TRAINING_GAIN in all (the gains
-    # after round 3 vary from none, on a discontinuity, to 1000x, on a 5-D posterior).
-    per_round = jnp.clip((v_last / v_first) ** (1 / (PILOT_ROUNDS - 1)), 0.5, 1.0)
-    per_round = jnp.where(jnp.isfinite(per_round), per_round, 1.0)
-    gain = jnp.maximum(per_round**more_rounds, 1 / MAX_TRAINING_GAIN)
-    variance = jnp.stack([qmc.variance, v_last * gain * round_size])
+    v_last = _relative_variance(parts.mean[-1], parts.variance[-1])
+    variance = jnp.stack([qmc.variance, v_last * round_size])
     # A pilot that saw only zeros (a peak its points missed), or whose mean a handful of
     # points carried, measured nothing: it never beats one that measured the integrand.
-    # If neither did, the grid, which keeps looking as it trains, is the better bet.
+    # If neither did, the grid, which kept looking as it trained, is the better bet.
     blind = jnp.stack([qmc.blind, jnp.all(parts.mean[-1] == 0)])
     variance = jnp.where(blind & ~jnp.all(blind), jnp.inf, variance)
     cost = variance * jnp.asarray([RELATIVE_COST[c] for c in CANDIDATES], variance.dtype)
     choice = jnp.where(qmc.clear_win, 0, jnp.where(jnp.all(blind), 1, jnp.argmin(cost)))
-    choice = choice.astype(jnp.int32)
-    return (variance, cost, choice), state
+    return (variance, cost, choice.astype(jnp.int32)), state
 
 
-def run_pilot(key, f, lo, hi, budget, batched, training_rounds):
-    """Run the candidates' pilots; returns `(Pilot, VEGAS+ state or None)`.
+def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size):
+    """Run the candidates' pilots; returns `(Pilot, trained VEGAS+ state or None)`.
 
-    `training_rounds`: the VEGAS+ rounds the grid would train for in all if chosen.
+    The grid's pilot is its whole training, `rounds` rounds of `round_size` (what
+    `method="adaptive"` trains on this budget): a young grid's variance says little
+    of the trained one's (measured: 10x worse to 1000x better after ten rounds).
     When QMC's pilot already beats plain Monte Carlo on the same points by
-    `QMC_CLEAR_WIN` per evaluation (a smooth integrand), no grid could win and its
-    pilot is skipped (outside `jit`, where the figures are known).
+    `QMC_CLEAR_WIN` per evaluation (a smooth integrand), no grid could win and it
+    is not trained (outside `jit`, where the figures are known).
     """
-    per_replica, round_size = pilot_sizes(budget)
+    per_replica = pilot_qmc_points(budget)
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_grid = jax.random.split(key)
     growth = min(final_net(budget - qmc_n) / per_replica, MAX_NET_GROWTH)
@@ -185,7 +184,6 @@ def run_pilot(key, f, lo, hi, budget, batched, training_rounds):
     if is_concrete(qmc.clear_win) and bool(qmc.clear_win):
         return Pilot(("qmc",), qmc.variance[None], qmc.variance[None], jnp.asarray(0, jnp.int32), (qmc_n,)), None
     (variance, cost, choice), state = _grid_pilot(
-        key_grid, lo, hi, qmc, f=f, round_size=round_size,
-        more_rounds=max(training_rounds - PILOT_ROUNDS, 0), batched=batched,
+        key_grid, lo, hi, qmc, f=f, rounds=rounds, round_size=round_size, batched=batched
     )
-    return Pilot(CANDIDATES, variance, cost, choice, (qmc_n, PILOT_ROUNDS * round_size)), state
+    return Pilot(CANDIDATES, variance, cost, choice, (qmc_n, rounds * round_size)), state

@@ -31,7 +31,7 @@ from .._fit._vegas import strata_per_axis
 from ..fit import Integrand, VegasPlus
 from ..proposals import Grid
 from ..stats import Estimate, ReliabilityWarning
-from ._auto import GRID_BINS, PILOT_ROUNDS, Pilot, run_adaptation, run_pilot
+from ._auto import GRID_BINS, Pilot, run_adaptation, run_pilot
 from ._stream import BLOCK, plan, stream
 
 
@@ -176,14 +176,15 @@ def integrate(
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
         pilot_key, key = jax.random.split(key)
-        rounds = training_rounds(budget, _adaptive_block(budget))
-        pilot, state = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds)
+        block = _adaptive_block(budget)
+        rounds = training_rounds(budget, block)
+        pilot, state = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds, block)
         spent = sum(pilot.evaluations)
         rest = budget - spent
         branches = (
             lambda: run.qmc(key, rest),
-            # The grid trains on from the pilot's: the rounds it has not had yet.
-            lambda: run.adaptive(key, rest, state.grid, max(2, rounds - PILOT_ROUNDS)),
+            # The pilot trained the grid in full: stream on it frozen.
+            lambda: run.frozen_grid(key, rest, frozen_vegas_plus(state, block), block),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -245,9 +246,13 @@ class _Run:
         block = _adaptive_block(budget)
         rounds = training_rounds(budget, block) if rounds is None else rounds
         key, frozen, trained = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
-        run_plan = plan("adaptive", budget - trained, self.chunk, self.mesh.devices.size, self.d, block)
-        est = self._stream(key, frozen, run_plan)
+        est = self.frozen_grid(key, budget - trained, frozen, block)
         return Estimate(est.mean, est.variance, est.n + trained, est.n_nonfinite)
+
+    def frozen_grid(self, key, budget, frozen, block):
+        """Stream VEGAS+ rounds of `block` points on a frozen `(grid, counts, strata)`."""
+        run_plan = plan("adaptive", budget, self.chunk, self.mesh.devices.size, self.d, block)
+        return self._stream(key, frozen, run_plan)
 
 
 def _adaptive_block(budget: int) -> int:
@@ -280,10 +285,14 @@ def _train_vegas_plus(key, f, grid, rounds, block, batched):
     stays unbiased.
     """
     train_key, key = jax.random.split(key)
-    rule = VegasPlus()
-    _, state, _ = run_adaptation(rule, train_key, Integrand(f, batched), grid, rounds, block)
-    strata = strata_per_axis(grid.dim, block, rule.max_strata)
-    return key, (state.grid, state.draw.counts, strata), rounds * block
+    _, state, _ = run_adaptation(VegasPlus(), train_key, Integrand(f, batched), grid, rounds, block)
+    return key, frozen_vegas_plus(state, block), rounds * block
+
+
+def frozen_vegas_plus(state, block: int):
+    """What streaming needs of a trained VEGAS+ state: the grid, the points per hypercube
+    its last round allocated for the next, and the hypercubes per axis."""
+    return state.grid, state.draw.counts, strata_per_axis(state.grid.dim, block, VegasPlus().max_strata)
 
 
 def _check_tolerance(tol: Any, name: str) -> Any:
