@@ -22,11 +22,13 @@ The candidates:
   a narrow peak) measured nothing.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
-  $\sigma^2_m$ of its last round. The pilot is the whole training because a
-  young grid's variance says little of the trained one's (measured after 3 and
-  10 rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a
-  5-D posterior). If the grid wins it streams on, frozen; if QMC wins, the
-  training was the price of knowing.
+  $\sigma^2_m$ of its last round. A young grid's variance says little of the
+  trained one's (measured after 3 and 10 rounds: from 10x worse, on a 16-D
+  discontinuity, to 1000x better, on a 5-D posterior), so the grid is dropped
+  after `SCREEN_ROUNDS` rounds only when it is `SCREEN_MARGIN` times costlier
+  than a QMC pilot that measured the integrand; otherwise it trains in full
+  and the choice is made on the trained grid. If the grid wins it streams on,
+  frozen; if QMC wins, the training was the price of knowing.
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
 readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
@@ -63,6 +65,8 @@ PILOT_SHARE = 1 / 16  # at most this share of the budget on the QMC pilot
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0}  # time per evaluation, relative to a Sobol' point
 GRID_BINS = 64  # grid bins per axis for the VEGAS+ candidate
 QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
+SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
+SCREEN_MARGIN = 10.0  # a young grid this much costlier than QMC is not trained on
 MIN_PILOT_ESS = 32.0  # fewer effective QMC pilot samples than this measure nothing
 MAX_NET_GROWTH = 8  # most the projection lets QMC's nets grow beyond the pilot's (its rate is pre-asymptotic)
 
@@ -148,42 +152,63 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 
 
 @eqx.filter_jit
-def _grid_pilot(key, lo, hi, qmc: _QMCPilot, *, f, rounds, round_size, batched):
-    """`rounds` VEGAS+ rounds from a uniform grid (its whole training), and the choice:
-    `((variance, cost, choice), state)`."""
+def _grid_rounds(key, grid, *, f, rounds, round_size, batched):
+    """`rounds` VEGAS+ rounds from `grid`: the last round's relative variance per
+    evaluation, whether it saw only zeros, and the trained state."""
     parts, state, _ = _run_adaptation(
-        VegasPlus(), key, Integrand(f, batched), Grid(lo, hi, bins=GRID_BINS), rounds, round_size
+        VegasPlus(), key, Integrand(f, batched), grid, rounds, round_size
     )
-    v_last = _relative_variance(parts.mean[-1], parts.variance[-1])
-    variance = jnp.stack([qmc.variance, v_last * round_size])
+    v_last = _relative_variance(parts.mean[-1], parts.variance[-1]) * round_size
+    return v_last, jnp.all(parts.mean[-1] == 0), state
+
+
+def _choose(qmc: _QMCPilot, v_grid, grid_blind):
+    """`(variance, cost, choice)` of the two candidates."""
+    variance = jnp.stack([qmc.variance, v_grid])
     # A pilot that saw only zeros (a peak its points missed), or whose mean a handful of
     # points carried, measured nothing: it never beats one that measured the integrand.
     # If neither did, the grid, which kept looking as it trained, is the better bet.
-    blind = jnp.stack([qmc.blind, jnp.all(parts.mean[-1] == 0)])
+    blind = jnp.stack([qmc.blind, grid_blind])
     variance = jnp.where(blind & ~jnp.all(blind), jnp.inf, variance)
     cost = variance * jnp.asarray([RELATIVE_COST[c] for c in CANDIDATES], variance.dtype)
     choice = jnp.where(qmc.clear_win, 0, jnp.where(jnp.all(blind), 1, jnp.argmin(cost)))
-    return (variance, cost, choice.astype(jnp.int32)), state
+    return variance, cost, choice.astype(jnp.int32)
 
 
 def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size):
     """Run the candidates' pilots; returns `(Pilot, trained VEGAS+ state or None)`.
 
-    The grid's pilot is its whole training, `rounds` rounds of `round_size` (what
-    `method="adaptive"` trains on this budget): a young grid's variance says little
-    of the trained one's (measured: 10x worse to 1000x better after ten rounds).
-    When QMC's pilot already beats plain Monte Carlo on the same points by
-    `QMC_CLEAR_WIN` per evaluation (a smooth integrand), no grid could win and it
-    is not trained (outside `jit`, where the figures are known).
+    The grid trains in two stages, `SCREEN_ROUNDS` rounds and then the rest of the
+    `rounds` rounds of `round_size` that `method="adaptive"` trains for: a young
+    grid's variance says little of the trained one's (measured after 3 and 10
+    rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a 5-D
+    posterior), so the choice is made on the trained grid unless the young one is
+    `SCREEN_MARGIN` times costlier than QMC. When QMC's pilot beats plain Monte Carlo
+    on the same points by `QMC_CLEAR_WIN` per evaluation (a smooth integrand) no
+    grid is trained at all. Both shortcuts are taken outside `jit` only, where the
+    figures are known.
     """
     per_replica = pilot_qmc_points(budget)
     qmc_n = per_replica * QMC_REPLICAS
-    key_qmc, key_grid = jax.random.split(key)
+    key_qmc, key_screen, key_train = jax.random.split(key, 3)
     growth = min(final_net(budget - qmc_n) / per_replica, MAX_NET_GROWTH)
     qmc = _qmc_pilot(key_qmc, lo, hi, f=f, per_replica=per_replica, growth=growth, batched=batched)
     if is_concrete(qmc.clear_win) and bool(qmc.clear_win):
         return Pilot(("qmc",), qmc.variance[None], qmc.variance[None], jnp.asarray(0, jnp.int32), (qmc_n,)), None
-    (variance, cost, choice), state = _grid_pilot(
-        key_grid, lo, hi, qmc, f=f, rounds=rounds, round_size=round_size, batched=batched
+    screen = min(SCREEN_ROUNDS, rounds)
+    v_grid, grid_blind, state = _grid_rounds(
+        key_screen, Grid(lo, hi, bins=GRID_BINS), f=f, rounds=screen, round_size=round_size,
+        batched=batched,
     )
+    variance, cost, choice = _choose(qmc, v_grid, grid_blind)
+    decided = (cost[1] > SCREEN_MARGIN * cost[0]) & ~qmc.blind
+    if not (is_concrete(decided) and bool(decided)) and rounds > screen:
+        v_grid, grid_blind, state = _grid_rounds(
+            key_train, state.grid, f=f, rounds=rounds - screen, round_size=round_size,
+            batched=batched,
+        )
+        trained = _choose(qmc, v_grid, grid_blind)
+        variance, cost, choice = (jnp.where(decided, a, b) for a, b in zip((variance, cost, choice), trained))
+    else:
+        rounds = screen
     return Pilot(CANDIDATES, variance, cost, choice, (qmc_n, rounds * round_size)), state
