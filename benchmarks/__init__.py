@@ -6,4 +6,4 @@ results, the timer `time_call`) and `problems` (the integrands, each written onc
 for `jax.numpy` and `numpy`).
 """
 
-SUITES = ("throughput", "points", "convergence", "adaptive", "render")
+SUITES = ("throughput", "points", "convergence", "adaptive", "auto", "render")
