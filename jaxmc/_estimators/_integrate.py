@@ -93,11 +93,13 @@ def integrate(
       and/or `n`.
     - `n`: the evaluation budget (a static int).
     - `method`:
-        - `"auto"` (default): a pilot on a few percent of the budget measures
-          each candidate's variance per evaluation — randomised QMC and a VEGAS+
-          grid — and spends the rest on the cheapest per unit of variance
-          (`jaxmc.estimators` docs, "Choosing the method"); `est.method` names
-          the winner and `est.pilot` keeps the figures. The pilot's evaluations
+        - `"auto"` (default): a pilot measures each candidate's variance per
+          evaluation — randomised QMC on at most 1/16 of the budget, then,
+          unless QMC already beats plain MC 1000-fold (a smooth integrand), the
+          VEGAS+ grid of `"adaptive"` as it trains (at most a quarter) — and
+          spends the rest on the cheaper per unit of variance (see
+          `jaxmc/_estimators/_auto.py` for the rules); `est.method` names the
+          winner and `est.pilot` keeps the figures. The pilot's evaluations
           count in `n` but not in the mean, which stays unbiased.
         - `"qmc"`: randomised QMC that keeps its convergence rate:
           $R$ independently scrambled Sobol' sequences, each walked block by
@@ -112,8 +114,9 @@ def integrate(
           or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
           than plain MC (Owen's scrambled nets), in any dimension.
         - `"adaptive"`: VEGAS+: a `Grid` and its stratification trained by
-          `jaxmc.fit.VegasPlus` on at most a quarter of the budget, then each
-          block one VEGAS+ round of $2^{14}$ points on the frozen grid and
+          `jaxmc.fit.VegasPlus` for up to ten rounds on at most a quarter of
+          the budget, then each block one VEGAS+ round (about budget/40 points,
+          a power of two from 256 to $2^{14}$) on the frozen grid and
           allocation; the budget is rounded down to whole rounds.
         - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
           jittered grid; variance from the spread of block means).
