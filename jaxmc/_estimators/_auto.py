@@ -122,12 +122,11 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
         return y
 
     y = jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
-    n = QMC_REPLICAS * per_replica
 
     def relative_variance_per_evaluation(values):
         means = jnp.mean(values, axis=1)
         variance = jnp.var(means, axis=0, ddof=1) / QMC_REPLICAS
-        return _relative_variance(jnp.mean(means, axis=0), variance) * n
+        return _relative_variance(jnp.mean(means, axis=0), variance) * values.shape[0] * values.shape[1]
 
     full = relative_variance_per_evaluation(y)
     # The first half (quarter) of a net is a net: the rate between sizes, measured twice.
