@@ -50,11 +50,10 @@ import jax.numpy as jnp
 from .._box import to_box
 from .._checks import is_concrete
 from .._integrand import evaluate, ratio
-from .._points._common import uint32_to_unit
-from .._points._sobol import sobol_block, sobol_scramble
+from .._points._sobol import sobol_scramble
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
 from ..proposals import Grid
-from ._stream import QMC_REPLICAS, final_net
+from ._stream import QMC_REPLICAS, final_net, replica_points
 
 
 # Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
@@ -116,8 +115,7 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
     volume = jnp.prod(hi - lo)
 
     def replica(k):
-        directions, shift = sobol_scramble(k, d)
-        u = uint32_to_unit(sobol_block(directions, shift, 0, per_replica.bit_length() - 1), lo.dtype)
+        u = replica_points(sobol_scramble(k, d), 0, per_replica.bit_length() - 1, lo.dtype)
         y, _ = ratio(evaluate(f, to_box(u if lo.ndim else u[:, 0], lo, hi), batched), 1 / volume)
         return y
 

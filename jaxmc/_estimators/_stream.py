@@ -105,7 +105,7 @@ def plan(
     """
     strata: tuple[int, ...] = ()
     replicas = 1
-    if method in ("plain", "importance"):
+    if method == "plain":
         # Smaller budgets get one power-of-two block, so little is masked away.
         block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
         blocks = -(-budget // block)
@@ -150,6 +150,12 @@ def plan(
     per_device = -(-per_step // devices)
     steps = -(-blocks // per_step)
     return Plan(method, block, blocks, budget, per_step, per_device, steps, strata, replicas)
+
+
+def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
+    """Block `position` (`2**log2_size` points on $[0,1)^d$) of the Sobol' sequence
+    scrambled by `scramble = sobol_scramble(key, d)`: one QMC replica's next net block."""
+    return uint32_to_unit(sobol_block(*scramble, position, log2_size), dtype)
 
 
 def _vegas_plus_block(key, frozen, n, f, batched):
@@ -202,7 +208,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
     d = 1 if lo.ndim == 0 else lo.shape[0]
     dtype = lo.dtype
     volume = jnp.prod(hi - lo)
-    per_sample = method in ("plain", "importance")
+    per_sample = method == "plain"
     axes = tuple(mesh.axis_names)
     if method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
@@ -212,11 +218,9 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
 
     def points_of_block(b):
         """The block's points `x` and their density `p(x)`."""
-        if method == "importance":
-            return frozen.sample(jax.random.fold_in(key, b), plan.block)
         if method == "qmc":
             r, position = b % plan.replicas, b // plan.replicas
-            u = uint32_to_unit(sobol_block(scrambles[0][r], scrambles[1][r], position, log2_block), dtype)
+            u = replica_points((scrambles[0][r], scrambles[1][r]), position, log2_block, dtype)
         elif method == "plain":
             u = unit_points("uniform", jax.random.fold_in(key, b), plan.block, d, dtype=dtype)
         else:
