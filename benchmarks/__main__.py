@@ -18,7 +18,7 @@ from pathlib import Path
 
 import jax
 
-from . import SUITES
+from . import FULL_ONLY, SUITES
 from ._harness import Context, time_call
 
 
@@ -50,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     suffix = "-quick" if args.quick else ""
     for name in SUITES:
         if args.only and not re.search(args.only, name):
+            continue
+        if args.quick and name in FULL_ONLY:
+            print(f"[{name}] has no quick setting, skipped", file=sys.stderr)
             continue
         try:
             module = importlib.import_module(f".{name}", __package__)

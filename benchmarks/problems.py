@@ -409,3 +409,53 @@ def half_space_indicator(d: int, level: float = 0.3) -> Problem:
         return xp.where(x @ xp.asarray(w) <= threshold, 1.0, 0.0)
 
     return _unit_cube(f"half-space indicator d={d}", d, f, float(volume), separable=False)
+
+
+# ----------------------------------------------------------------------------
+# The coverage suite's extra shapes: a product of cosines, a normalised Gaussian of any
+# width (down to a peak that a small budget misses) and a thin spherical shell.
+
+
+def product_cos(d: int) -> Problem:
+    r"""$\prod_j \cos x_j$ on $[0, 1]^d$, $I = \sin(1)^d$: smooth and separable."""
+
+    def f(x, xp):
+        return xp.prod(xp.cos(x), axis=-1)
+
+    return _unit_cube(f"product cos d={d}", d, f, math.sin(1.0) ** d, separable=True)
+
+
+def narrow_gaussian(d: int, sigma: float) -> Problem:
+    r"""A normalised Gaussian of width `sigma` centred at Genz's shifts $u$ (off the grid lines).
+
+    $f(x) = (2\pi\sigma^2)^{-d/2} \exp(-|x - u|^2 / 2\sigma^2)$, whose box integral is
+    $\prod_j \frac12 [\mathrm{erf}((1 - u_j)/\sigma\sqrt2) + \mathrm{erf}(u_j/\sigma\sqrt2)]$.
+    At $\sigma = 10^{-3}$ in 2-D the peak covers about $10^{-5}$ of the square, so a
+    few thousand uniform points usually miss it altogether.
+    """
+    u = _genz_shifts(d)
+    scale = sigma * math.sqrt(2.0)
+    exact = math.prod(0.5 * (math.erf((1 - c) / scale) + math.erf(c / scale)) for c in u)
+    norm = (2 * math.pi * sigma**2) ** (-d / 2)
+
+    def f(x, xp):
+        return norm * xp.exp(-xp.sum((x - xp.asarray(u)) ** 2, axis=-1) / (2 * sigma**2))
+
+    return _unit_cube(f"narrow Gaussian d={d} (sigma={sigma:g})", d, f, exact, separable=True)
+
+
+def thin_shell(d: int, radius: float = 0.3, width: float = 0.01) -> Problem:
+    r"""The indicator of the shell $r \le |x - c| \le r + w$ about the cube's centre: its volume.
+
+    $I = \frac{\pi^{d/2}}{\Gamma(d/2 + 1)} ((r + w)^d - r^d)$ (the shell lies inside the cube).
+    """
+    outer = radius + width
+    if outer > 0.5:
+        raise ValueError(f"the shell must lie inside the cube: radius + width = {outer} > 0.5.")
+    exact = math.pi ** (d / 2) / math.gamma(d / 2 + 1) * (outer**d - radius**d)
+
+    def f(x, xp):
+        squared = xp.sum((x - 0.5) ** 2, axis=-1)
+        return xp.where((squared >= radius**2) & (squared <= outer**2), 1.0, 0.0)
+
+    return _unit_cube(f"thin shell d={d} (r={radius}, w={width})", d, f, exact, separable=False)

@@ -1,6 +1,6 @@
 """jaxmc: Monte Carlo integration in JAX."""
 
-import importlib.metadata
+import importlib.metadata as _metadata
 
 from . import (
     distributions as distributions,
@@ -33,4 +33,30 @@ from .stats import (
 )
 
 
-__version__ = importlib.metadata.version("jaxmc")
+__version__ = _metadata.version("jaxmc")
+
+__all__ = [
+    "Combined",
+    "Estimate",
+    "ReliabilityWarning",
+    "antithetic",
+    "combine",
+    "control_variate",
+    "distributions",
+    "estimators",
+    "fit",
+    "importance",
+    "integrate",
+    "mis",
+    "mis_one_sample",
+    "points",
+    "proposals",
+    "quad",
+    "randomized_qmc",
+    "render",
+    "stats",
+    "stratified",
+    "testing",
+    "uniform",
+    "warps",
+]

@@ -9,6 +9,7 @@ bounds they are skipped rather than turned into runtime errors.
 
 from __future__ import annotations
 
+import inspect
 import operator
 from collections.abc import Callable
 from typing import Any
@@ -46,8 +47,11 @@ def check_key(key: Any, name: str = "key") -> jax.Array:
     return key
 
 
-def check_count(n: Any, name: str = "n", minimum: int = 1) -> int:
-    """A static, positive Python int (sizes are static in jaxmc)."""
+MAX_COUNT = 2**31 - 1  # evaluation counts are int32 on the device: the cap of every budget
+
+
+def check_count(n: Any, name: str = "n", minimum: int = 1, maximum: int | None = None) -> int:
+    """A static Python int in `[minimum, maximum]` (sizes are static in jaxmc)."""
     if isinstance(n, bool):
         raise TypeError(f"`{name}` must be an int, got a bool.")
     try:
@@ -58,7 +62,17 @@ def check_count(n: Any, name: str = "n", minimum: int = 1) -> int:
         ) from None
     if value < minimum:
         raise ValueError(f"`{name}` must be >= {minimum}, got {value}.")
+    if maximum is not None and value > maximum:
+        limit = "2**31 - 1 (counts are int32)" if maximum == MAX_COUNT else str(maximum)
+        raise ValueError(f"`{name}` must be at most {limit}, got {value}.")
     return value
+
+
+def check_flag(value: Any, name: str) -> bool:
+    """A Python bool (a static switch, not an array)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"`{name}` must be a bool (True or False), got {type(value).__name__} {value!r}.")
+    return bool(value)
 
 
 def check_choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
@@ -67,14 +81,16 @@ def check_choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
     return value
 
 
-def check_bounds(lo: Any, hi: Any) -> tuple[jax.Array, jax.Array]:
+def check_bounds(lo: Any, hi: Any, finite_volume: bool = False) -> tuple[jax.Array, jax.Array]:
     """Bounds of a box: both scalars or both of shape `(d,)`, with `lo < hi`.
 
     Returns floating arrays of the default float dtype (or of the bounds' own
-    floating dtype).
+    floating dtype). With `finite_volume` (for estimators that divide by the
+    volume, rather than summing its logarithm), the volume and the uniform
+    density must be finite and non-zero in that dtype.
     """
-    lo_arr = jnp.asarray(lo)
-    hi_arr = jnp.asarray(hi)
+    lo_arr = as_real_array(lo, "`lo` must be a real number or a sequence of them")
+    hi_arr = as_real_array(hi, "`hi` must be a real number or a sequence of them")
     dtype = jnp.result_type(lo_arr.dtype, hi_arr.dtype, float)
     lo_arr, hi_arr = lo_arr.astype(dtype), hi_arr.astype(dtype)
     if lo_arr.ndim > 1 or hi_arr.ndim > 1:
@@ -88,17 +104,84 @@ def check_bounds(lo: Any, hi: Any) -> tuple[jax.Array, jax.Array]:
         )
     if lo_arr.shape == (0,):
         raise ValueError("`lo` and `hi` must have at least one dimension, got shape (0,).")
-    if is_concrete(lo_arr) and is_concrete(hi_arr):
-        lo_np, hi_np = np.asarray(lo_arr), np.asarray(hi_arr)
+    # The values as given (under jit even a Python list is staged by jnp.asarray).
+    lo_np, hi_np = _host_values(lo, dtype), _host_values(hi, dtype)
+    if lo_np is not None and hi_np is not None:
         if not (np.all(np.isfinite(lo_np)) and np.all(np.isfinite(hi_np))):
             raise ValueError(f"`lo` and `hi` must be finite, got lo={lo_np}, hi={hi_np}.")
         if not np.all(lo_np < hi_np):
             raise ValueError(f"`lo` must be < `hi` in every dimension, got lo={lo_np}, hi={hi_np}.")
+        if finite_volume:
+            _check_volume(lo_np, hi_np, dtype)
     return lo_arr, hi_arr
 
 
-def check_callable(f: Any, name: str = "f") -> Callable:
+def as_real_array(value: Any, requirement: str) -> jax.Array:
+    """`value` as an array of real numbers (booleans, integers or floats), else a `TypeError`
+    reading `requirement` (e.g. "`lo` must be a real number or a sequence of them")."""
+    if not isinstance(value, jax.Array):
+        try:  # numpy first: jnp would read a string as a dtype name
+            kind = np.asarray(value).dtype.kind
+        except Exception:  # ragged, or holding tracers: jnp.asarray decides
+            kind = "?"
+        if kind not in "biuf?":
+            raise TypeError(f"{requirement}, got {type(value).__name__} {_abbreviated(value)}.")
+    try:
+        arr = jnp.asarray(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{requirement}, got {type(value).__name__} {_abbreviated(value)}.") from None
+    if not any(jnp.issubdtype(arr.dtype, t) for t in (jnp.floating, jnp.integer, jnp.bool_)):
+        raise TypeError(f"{requirement}, got dtype {arr.dtype}.")
+    return arr
+
+
+def _host_values(value: Any, dtype: Any) -> np.ndarray | None:
+    """`value` as a NumPy array of `dtype` when it is known at trace time, else `None`."""
+    if isinstance(value, jax.core.Tracer):
+        return None
+    try:
+        with np.errstate(all="ignore"):  # a float32 overflow shows up as inf, checked later
+            return np.asarray(value).astype(dtype)
+    except Exception:  # holds tracers
+        return None
+
+
+def _abbreviated(value: Any, width: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def _check_volume(lo: np.ndarray, hi: np.ndarray, dtype: Any) -> None:
+    """The box volume and its inverse (the uniform density) must be finite and non-zero in `dtype`."""
+    with np.errstate(all="ignore"):
+        volume = np.prod(hi - lo, dtype=dtype)
+        density = np.asarray(1, dtype) / volume
+        exact = np.prod(hi.astype(np.float64) - lo.astype(np.float64))
+    if not (np.isfinite(volume) and np.isfinite(density) and volume > 0 and density > 0):
+        raise ValueError(
+            f"`lo` and `hi` span a box whose volume prod(hi - lo) = {float(exact):.3g} "
+            f"is not representable in {np.dtype(dtype).name} (it overflows or underflows); "
+            "rescale the variables" + ("." if np.dtype(dtype) == np.float64 else (
+                " or pass float64 bounds." if jax.config.jax_enable_x64 else
+                " or enable float64: jax.config.update('jax_enable_x64', True)."))
+        )
+
+
+def check_callable(f: Any, name: str = "f", arguments: int | None = None) -> Callable:
+    """A callable; with `arguments`, one that accepts that many positional arguments
+    (checked against its signature when Python can read one)."""
     if not callable(f):
         raise TypeError(f"`{name}` must be callable, got {type(f).__name__}.")
+    if arguments is not None:
+        try:
+            signature = inspect.signature(f)
+        except (TypeError, ValueError):  # builtins and some C callables have none
+            return f
+        try:
+            signature.bind(*([None] * arguments))
+        except TypeError:
+            raise TypeError(
+                f"`{name}` must accept {arguments} positional argument"
+                f"{'' if arguments == 1 else 's'}, but its signature is {signature}."
+            ) from None
     return f
-

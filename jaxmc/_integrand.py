@@ -9,32 +9,51 @@ conventions for shapes, dtypes and non-finite values live here alone.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
+
+from ._checks import as_real_array, check_callable, check_flag
 
 
 def evaluate(f: Callable, x: jax.Array, batched: bool, name: str = "f") -> jax.Array:
     """Evaluate an integrand on a batch `x` of shape `(n, ...)`.
 
     `f` is written for one point unless `batched`; the result has shape
-    `(n, *out_shape)` and a floating dtype.
+    `(n, *out_shape)` and a floating dtype. Errors name `f` and say how it was
+    called, never the internal batch size.
     """
+    check_callable(f, name, arguments=1)
+    batched = check_flag(batched, "batched")
     n = x.shape[0]
-    y = f(x) if batched else jax.vmap(f)(x)
-    y = jnp.asarray(y)
-    if y.ndim == 0 or y.shape[0] != n:
+    point = str(("batch",) + x.shape[1:]).replace("'", "") if batched else str(x.shape[1:])
+
+    def call(points):
+        try:
+            return f(points)
+        except Exception as error:  # the user's own error: say how jaxmc called `f`
+            if hasattr(error, "add_note"):  # Python >= 3.11
+                where = "a batch of points" if batched else "one point"
+                scalar = " (scalar bounds `lo`, `hi` give scalar points)" if x.ndim == 1 else ""
+                error.add_note(f"(raised by the integrand `{name}`, which jaxmc calls on {where} x "
+                               f"of shape {point} and dtype {x.dtype}{scalar})")
+            raise
+
+    y = _values(call(x), name) if batched else jax.vmap(lambda xi: _values(call(xi), name))(x)
+    if batched and (y.ndim == 0 or y.shape[0] != n):
         raise ValueError(
-            f"`{name}` with batched=True must return an array with leading axis {n}, "
-            f"got shape {y.shape}."
-            if batched
-            else f"`{name}` returned an unexpected shape {y.shape}."
+            f"`{name}` with batched=True is called on a batch of points x of shape {point} and "
+            f"must return one value per point: an array of shape (batch,) or (batch, ...) whose "
+            f"leading axis is x.shape[0]; it returned shape {y.shape}."
         )
-    if not jnp.issubdtype(y.dtype, jnp.inexact):
-        y = y.astype(jnp.result_type(float))
-    elif jnp.issubdtype(y.dtype, jnp.complexfloating):
-        raise TypeError(f"`{name}` must return real values, got dtype {y.dtype}.")
     return y
+
+
+def _values(y: Any, name: str) -> jax.Array:
+    """An integrand's output as a floating array (booleans and integers are converted)."""
+    y = as_real_array(y, f"`{name}` must return a real number or an array of real numbers")
+    return y if jnp.issubdtype(y.dtype, jnp.floating) else y.astype(jnp.result_type(float))
 
 
 def ratio(fx: jax.Array, px: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -84,26 +84,30 @@ def bits(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 def uniform(key: jax.Array, shape: tuple[int, ...], dtype) -> jax.Array:
-    r"""Uniform floats on $[0, 1)$ of `shape` and floating `dtype`.
+    r"""Uniform floats in the open interval $(0, 1)$ of `shape` and floating `dtype`.
 
-    Single and lower precision: the top 23 bits of a word fill the mantissa of
-    a float in $[1, 2)$ and 1 is subtracted (as `jax.random.uniform` does), so
-    values are multiples of $2^{-23}$. Double precision: 53 bits from the two
-    words of one Threefry block, $(\lfloor a/2^5 \rfloor 2^{26} + \lfloor b/2^6
-    \rfloor)\, 2^{-53}$, exact in float64.
+    Each value is the midpoint of one of $2^k$ equal cells, $(j + \tfrac12)\,2^{-k}$
+    with $j$ uniform, so it is never 0 or 1, $1 - u$ has the same law, and the
+    mean is exactly $\tfrac12$. Single and lower precision, $k = 23$: the top
+    23 bits of a word fill the mantissa of a float in $[1, 2)$ and
+    $1 - 2^{-24}$ is subtracted (exactly, by Sterbenz's lemma), so
+    $u \in [2^{-24}, 1 - 2^{-24}]$. Double precision, $k = 52$: 26 bits from
+    each word of one Threefry block, $(\lfloor a/2^6 \rfloor 2^{26} + \lfloor
+    b/2^6 \rfloor + \tfrac12)\, 2^{-52}$, exact in float64. Lower precisions round
+    the float32 value, kept within $[\text{tiny}, 1)$.
     """
     dtype = jnp.dtype(dtype)
     if jnp.finfo(dtype).nmant > 23:
         a, b = _counter_words(key, shape)
-        hi = (a >> _U(5)).astype(dtype) * dtype.type(2.0**26)
-        return (hi + (b >> _U(6)).astype(dtype)) * dtype.type(2.0**-53)
+        hi = (a >> _U(6)).astype(dtype) * dtype.type(2.0**26)
+        return (hi + (b >> _U(6)).astype(dtype) + dtype.type(0.5)) * dtype.type(2.0**-52)
     words = bits(key, shape)
     one_to_two = lax.bitcast_convert_type((words >> _U(9)) | _U(0x3F800000), jnp.float32)
-    u = one_to_two - np.float32(1.0)
+    u = one_to_two - np.float32(1.0 - 2.0**-24)
     if dtype == jnp.float32:
         return u
     below_one = np.nextafter(np.array(1.0, dtype), np.array(0.0, dtype))
-    return jnp.minimum(u.astype(dtype), below_one)
+    return jnp.clip(u.astype(dtype), jnp.finfo(dtype).tiny, below_one)
 
 
 def _uniform_below(k0: jax.Array, k1: jax.Array, stream: jax.Array, n: int) -> jax.Array:

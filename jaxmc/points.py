@@ -1,8 +1,8 @@
-r"""Point sets on the unit cube $[0,1)^d$.
+r"""Point sets on the unit cube $(0,1)^d$.
 
 Random point sets (`uniform`, `stratified`, `latin_hypercube`) and
 low-discrepancy ones (`halton`, `sobol`, `lattice`), optionally randomised so
-that every point is marginally uniform on $[0,1)^d$ while the set keeps its
+that every point is marginally uniform on $(0,1)^d$ while the set keeps its
 structure; then each randomised point set gives an unbiased estimator. Also
 the classic `lcg` generator, a Fisher–Yates `shuffle`, and the `discrepancy`
 of a point set.

@@ -1,340 +1,42 @@
-r"""Estimates with error bars, their combination, and mergeable running moments.
+r"""Estimates with error bars, their diagnostics and combination, and mergeable running moments.
 
 An `Estimate` is what every estimator returns: the integral estimate, the
 estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$,
-eq. 13 of the lecture), the number of integrand evaluations and the number of
-them whose value was not finite.
-
-`Moments` are the sufficient statistics `(count, mean, m2)` of a stream of
-values, where `m2` is the sum of squared deviations from the mean. Two sets
-merge exactly with the parallel update of Chan, Golub and LeVeque (1979):
-
-$$\delta = \bar x_b - \bar x_a,\quad n = n_a + n_b,\quad
-\bar x = \bar x_a + \delta\, n_b/n,\quad M_2 = M_{2,a} + M_{2,b} + \delta^2 n_a n_b/n.$$
-
-Merging per-block moments instead of keeping one running sum keeps float32
-accurate over $10^9$ samples: each block's mean is a short sum, and the merge
-never adds a small number to a huge one.
+eq. 13 of the lecture), the evaluation counts, and diagnostics of whether the
+error bar can be believed (`ess`, `n_nonzero`, `pareto_k`; `unreliable` and
+`reliability_reasons` read them). `combine` merges independent estimates by
+inverse-variance weights, as vegas does across its iterations. `Moments` are
+the mergeable sufficient statistics `(count, mean, m2)` of a stream of values
+(Chan, Golub and LeVeque's update: `moments`, `merge`, `merge_all`).
 """
 
-from __future__ import annotations
-
-from collections.abc import Sequence
-from typing import NamedTuple
-
-import equinox as eqx
-import jax
-import jax.numpy as jnp
-from jax.scipy.special import gammaincc, ndtri
-
-
-class ReliabilityWarning(UserWarning):
-    """An error bar that cannot be trusted: e.g. adaptive rounds that disagree (tiny `q`)."""
-
-
-class Estimate(eqx.Module):
-    r"""A Monte Carlo estimate and its error.
-
-    **Fields:**
-
-    - `mean`: the integral estimate, with the shape of the integrand's output.
-    - `variance`: estimated variance of `mean` (for i.i.d. samples $s^2/n$, eq. 13).
-    - `n`: number of integrand evaluations.
-    - `n_nonfinite`: evaluations whose weighted value $f/p$ was not finite; they
-      contributed zero to `mean`.
-    """
-
-    mean: jax.Array
-    variance: jax.Array
-    n: jax.Array
-    n_nonfinite: jax.Array
-
-    @property
-    def stderr(self) -> jax.Array:
-        """Standard error $\\sqrt{\\mathrm{variance}}$."""
-        return jnp.sqrt(self.variance)
-
-    def interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
-        r"""Normal-approximation (CLT) interval $\mathrm{mean} \pm z_{(1+\ell)/2}\,\mathrm{stderr}$."""
-        check_level(level)
-        z = ndtri(jnp.asarray(0.5 + level / 2, dtype=jnp.result_type(self.mean)))
-        half = z * self.stderr
-        return self.mean - half, self.mean + half
-
-    def chebyshev(self, delta: float) -> jax.Array:
-        r"""Half-width $\varepsilon$ with $P(|\mathrm{mean} - I| \ge \varepsilon) \le \delta$.
-
-        Chebyshev's inequality (eq. 14): $\varepsilon = \sqrt{\mathrm{variance}/\delta}$.
-        Holds for any distribution with finite variance, so it is wider than
-        `interval` but needs no normality.
-        """
-        if not isinstance(delta, jax.core.Tracer) and not 0 < float(delta) <= 1:
-            raise ValueError(f"`delta` must be in (0, 1], got {delta}.")
-        return jnp.sqrt(self.variance / delta)
+from ._diagnostics import (
+    ReliabilityWarning as ReliabilityWarning,
+    reliability_reasons as reliability_reasons,
+    rounding_floor as rounding_floor,
+    unreliable as unreliable,
+)
+from ._stats import (
+    Combined as Combined,
+    Estimate as Estimate,
+    Moments as Moments,
+    combine as combine,
+    merge as merge,
+    merge_all as merge_all,
+    moments as moments,
+)
 
 
-class Combined(Estimate):
-    r"""Inverse-variance weighted combination of independent estimates.
-
-    On top of `Estimate`'s fields: `chi2_dof`, the $\chi^2$ of the parts about
-    the combined mean per degree of freedom (near 1 when the parts agree within
-    their error bars), `q`, the probability that a $\chi^2$ variable with that
-    many degrees of freedom is at least as large (tiny $q$ means the parts
-    disagree, e.g. an adaptive density missed a peak), and `parts`, the inputs
-    stacked along a leading axis.
-    """
-
-    chi2_dof: jax.Array
-    q: jax.Array
-    parts: Estimate
-
-
-def check_level(level: float) -> None:
-    """A confidence level in (0, 1) (checked when concrete)."""
-    if not isinstance(level, jax.core.Tracer) and not 0 < float(level) < 1:
-        raise ValueError(f"`level` must be in (0, 1), got {level}.")
-
-
-def _stack(estimates: Estimate | Sequence[Estimate]) -> Estimate:
-    if isinstance(estimates, Estimate):
-        parts = estimates
-        if jnp.ndim(parts.n) != 1:
-            raise ValueError(
-                "`estimates` given as one Estimate must be stacked along a leading axis "
-                f"(e.g. from jax.vmap), got n of shape {jnp.shape(parts.n)}."
-            )
-        return Estimate(parts.mean, parts.variance, parts.n, parts.n_nonfinite)
-    estimates = list(estimates)
-    if not estimates or not all(isinstance(e, Estimate) for e in estimates):
-        raise TypeError("`estimates` must be a non-empty sequence of Estimate or a stacked Estimate.")
-    plain = [Estimate(e.mean, e.variance, e.n, e.n_nonfinite) for e in estimates]
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *plain)
-
-
-def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
-    r"""Combine independent estimates of the same integral by inverse-variance weights.
-
-    With $w_i = 1/V_i$: $\bar I = \sum_i w_i I_i / \sum_i w_i$, $V = 1/\sum_i w_i$,
-    and $\chi^2 = \sum_i w_i (I_i - \bar I)^2$ with $k - 1$ degrees of freedom
-    ($k$ parts), as vegas reports across its iterations. For array-valued
-    estimates each component is combined on its own and the $\chi^2$ is summed
-    over components (with $(k-1)\cdot$size degrees of freedom).
-
-    Parts with zero variance need a rule, since $1/V$ is infinite:
-
-    - zero variance and a non-zero mean (every sample of $f/p$ equal: an exact
-      zero-variance density) is exact, and the exact parts get all the weight;
-    - zero variance and zero mean (every sample zero: e.g. an adaptive round
-      whose density missed the integrand's peak) carries no information and
-      gets no weight, rather than swallowing the others. If every part is like
-      that, the result is 0 with variance 0.
-
-    Only the parts with finite, positive variance enter the $\chi^2$, and the
-    degrees of freedom count them (one fewer than their number); a part with an
-    infinite or NaN variance gets no weight (if no part has any, the result is
-    NaN with infinite variance).
-
-    **Arguments:**
-
-    - `estimates`: a sequence of `Estimate`s, or one `Estimate` stacked along a
-      leading axis.
-
-    **Returns:** a `Combined`.
-    """
-    parts = _stack(estimates)
-    var = parts.variance
-    flat = var <= 0
-    empty = flat & (parts.mean == 0)
-    exact = flat & ~empty
-    any_exact = jnp.any(exact, axis=0)
-    measured = (var > 0) & jnp.isfinite(var)
-    # Exact parts share all the weight among themselves; otherwise inverse variances.
-    w = jnp.where(any_exact, exact, jnp.where(measured, 1.0 / jnp.where(measured, var, 1.0), 0.0))
-    w = w.astype(var.dtype)
-    wsum = jnp.sum(w, axis=0)
-    informative = wsum > 0
-    safe_wsum = jnp.where(informative, wsum, 1.0)
-    # No weight anywhere: all parts empty gives 0 +- 0; otherwise nothing is known.
-    all_empty = jnp.all(empty, axis=0)
-    unknown_mean = jnp.where(all_empty, 0.0, jnp.nan)
-    mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / safe_wsum, unknown_mean)
-    unknown_var = jnp.where(all_empty, 0.0, jnp.inf)
-    variance = jnp.where(any_exact, 0.0, jnp.where(informative, 1.0 / safe_wsum, unknown_var))
-    chi2_terms = jnp.where(measured, (parts.mean - mean) ** 2 / jnp.where(measured, var, 1.0), 0.0)
-    chi2 = jnp.sum(chi2_terms)
-    dof = jnp.sum(jnp.maximum(jnp.sum(measured, axis=0) - 1, 0)).astype(var.dtype)
-    has_dof = dof > 0
-    safe_dof = jnp.where(has_dof, dof, 1.0)
-    chi2_dof = jnp.where(has_dof, chi2 / safe_dof, 0.0)
-    q = jnp.where(has_dof, gammaincc(safe_dof / 2.0, chi2 / 2.0), 1.0)
-    return Combined(
-        mean=mean,
-        variance=variance,
-        n=jnp.sum(parts.n),
-        n_nonfinite=jnp.sum(parts.n_nonfinite),
-        chi2_dof=chi2_dof,
-        q=q,
-        parts=parts,
-    )
-
-
-class Moments(NamedTuple):
-    """Mergeable sufficient statistics of a stream of values.
-
-    `count` is a float (so weights and huge counts need no integer overflow
-    care); `mean` and `m2` have the shape of one value.
-    """
-
-    count: jax.Array
-    mean: jax.Array
-    m2: jax.Array
-
-
-def moments(values: jax.Array, mask: jax.Array | None = None) -> Moments:
-    """Moments of `values` along axis 0 (two-pass: mean, then centred squares).
-
-    `mask` (shape `(n,)`, bool) selects which rows count.
-    """
-    values = jnp.asarray(values)
-    if mask is None:
-        count = jnp.asarray(values.shape[0], dtype=values.dtype)
-        mean = jnp.mean(values, axis=0)
-        m2 = jnp.sum((values - mean) ** 2, axis=0)
-        return Moments(count, mean, m2)
-    m = jnp.reshape(mask, mask.shape + (1,) * (values.ndim - 1)).astype(values.dtype)
-    count = jnp.sum(mask).astype(values.dtype)
-    safe = jnp.maximum(count, 1)
-    mean = jnp.sum(values * m, axis=0) / safe
-    m2 = jnp.sum(m * (values - mean) ** 2, axis=0)
-    return Moments(count, mean, m2)
-
-
-def merge(a: Moments, b: Moments) -> Moments:
-    """Chan et al.'s exact merge of two sets of moments (either may be empty)."""
-    count = a.count + b.count
-    safe = jnp.where(count > 0, count, 1)
-    delta = b.mean - a.mean
-    frac_b = _expand(b.count / safe, delta)
-    mean = a.mean + delta * frac_b
-    m2 = a.m2 + b.m2 + delta**2 * _expand(a.count, delta) * frac_b
-    return Moments(count, mean, m2)
-
-
-def _expand(count: jax.Array, like: jax.Array) -> jax.Array:
-    """Append unit axes so per-row counts broadcast against per-row values."""
-    return jnp.reshape(count, jnp.shape(count) + (1,) * (jnp.ndim(like) - jnp.ndim(count)))
-
-
-def merge_all(stacked: Moments) -> Moments:
-    """Merge moments stacked along axis 0 by a balanced pairwise tree.
-
-    The tree keeps rounding error at $O(\\log k)$ merges deep for $k$ parts.
-    """
-    k = stacked.count.shape[0]
-    while k > 1:
-        half = k // 2
-        first = jax.tree.map(lambda x: x[:half], stacked)
-        second = jax.tree.map(lambda x: x[half : 2 * half], stacked)
-        merged = merge(first, second)
-        if k % 2:
-            rest = jax.tree.map(lambda x: x[2 * half :], stacked)
-            merged = jax.tree.map(lambda x, y: jnp.concatenate([x, y]), merged, rest)
-        stacked = merged
-        k = stacked.count.shape[0]
-    return jax.tree.map(lambda x: x[0], stacked)
-
-
-def empty_moments(shape: tuple[int, ...], dtype) -> Moments:
-    zero = jnp.zeros(shape, dtype)
-    return Moments(jnp.zeros((), dtype), zero, zero)
-
-
-def estimate_from_moments(m: Moments, n: jax.Array, n_nonfinite: jax.Array) -> Estimate:
-    """The i.i.d. estimate: mean, and variance of the mean $s^2/n$ with $s^2 = M_2/(n-1)$."""
-    count = _expand(m.count, m.m2)
-    var = m.m2 / jnp.maximum(count - 1, 1) / jnp.maximum(count, 1)
-    var = jnp.where(count > 1, var, jnp.inf)
-    return Estimate(mean=m.mean, variance=var, n=n, n_nonfinite=n_nonfinite)
-
-
-def estimate_iid(y: jax.Array, bad: jax.Array) -> Estimate:
-    """The basic estimate from per-sample values `y` (shape `(n, ...)`), eq. 12 and 13."""
-    n = y.shape[0]
-    return estimate_from_moments(
-        moments(y), jnp.asarray(n, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
-    )
-
-
-# Lanes of the two-level reduction inside a block: sums of 128 rows, then a tree.
-_LANE = 128
-
-
-def block_moments(y: jax.Array, valid: jax.Array) -> Moments:
-    """Moments of one block of values `(n, ...)` (rows where `valid`) by a two-level
-    reduction: lanes of 128 rows, then a balanced tree (`merge_all`)."""
-    block = y.shape[0]
-    lane = min(_LANE, block)
-    rows = -(-block // lane)
-    if rows * lane != block:  # e.g. a jittered grid of 25^3 points: pad with invalid rows
-        pad = rows * lane - block
-        y = jnp.concatenate([y, jnp.zeros((pad,) + y.shape[1:], y.dtype)])
-        valid = jnp.concatenate([valid, jnp.zeros(pad, bool)])
-    y2 = y.reshape((rows, lane) + y.shape[1:])
-    v2 = valid.reshape(rows, lane)
-    mask = v2.reshape(v2.shape + (1,) * (y.ndim - 1)).astype(y.dtype)
-    count = jnp.sum(v2, axis=1).astype(y.dtype)
-    safe = jnp.maximum(count, 1).reshape((rows,) + (1,) * (y.ndim - 1))
-    mean = jnp.sum(y2 * mask, axis=1) / safe
-    m2 = jnp.sum(mask * (y2 - mean[:, None]) ** 2, axis=1)
-    return merge_all(Moments(count, mean, m2))
-
-
-def merge_across_devices(m: Moments, axes: tuple[str, ...]) -> Moments:
-    """Merge per-device moments (scalar counts) across mesh `axes` with collectives.
-
-    The same update as `merge`, written as sums: `psum` of counts, of
-    count-weighted means, and of centred second moments about the pooled mean.
-    """
-    count = jax.lax.psum(m.count, axes)
-    safe = jnp.where(count > 0, count, 1)
-    mean = jax.lax.psum(m.count * m.mean, axes) / safe
-    m2 = jax.lax.psum(m.m2 + m.count * (m.mean - mean) ** 2, axes)
-    return Moments(count, mean, m2)
-
-
-def slot_of_sample(counts: jax.Array, n: int) -> jax.Array:
-    """The stratum (slot) of each of `n` samples laid out stratum by stratum, `counts` per
-    stratum (zeros allowed): `(n,)` non-decreasing indices."""
-    starts = jnp.cumsum(counts)[:-1]
-    return jnp.cumsum(jnp.zeros((n,), jnp.int32).at[starts].add(1, mode="drop"))
-
-
-def stratified_estimate(y, slot, counts, volume, n_nonfinite) -> tuple[Estimate, jax.Array]:
-    r"""The stratified estimate from values `y` `(n, ...)` laid out stratum by stratum (§4.2).
-
-    Stratum $h$ of relative volume $v_h$ (`volume`: one scalar for equal strata,
-    or `(H,)`) holds $n_h$ = `counts[h]` of the samples (`slot` gives each
-    sample's stratum, sorted); with $ar y_h$ and $s_h^2$ its sample mean and
-    unbiased variance,
-    $$\hat I = \sum_h v_h ar y_h,\qquad \hat V = \sum_h v_h^2\, s_h^2 / n_h.$$
-    Strata with fewer than two samples contribute no variance.
-
-    **Returns:** the `Estimate` and the per-stratum variances $s_h^2$ `(H, ...)`.
-    """
-    h = counts.shape[0]
-    cnt = counts.astype(y.dtype)
-    shape = (h,) + (1,) * (y.ndim - 1)
-    seg = lambda a: jax.ops.segment_sum(a, slot, h, indices_are_sorted=True)  # noqa: E731
-    per_stratum = jnp.reshape(jnp.maximum(cnt, 1.0), shape)
-    mean_h = seg(y) / per_stratum
-    var_h = seg((y - mean_h[slot]) ** 2) / jnp.reshape(jnp.maximum(cnt - 1.0, 1.0), shape)
-    if jnp.ndim(volume) == 0:  # equal strata: factor the volume out of the sums
-        mean = volume * jnp.sum(mean_h, axis=0)
-        variance = volume**2 * jnp.sum(var_h / per_stratum, axis=0)
-    else:
-        v = jnp.reshape(volume, shape)
-        mean = jnp.sum(v * mean_h, axis=0)
-        variance = jnp.sum(v**2 * var_h / per_stratum, axis=0)
-    n = jnp.asarray(y.shape[0], jnp.int32)
-    est = Estimate(mean=mean, variance=variance, n=n, n_nonfinite=n_nonfinite)
-    return est, var_h
+__all__ = [
+    "Combined",
+    "Estimate",
+    "Moments",
+    "ReliabilityWarning",
+    "combine",
+    "merge",
+    "merge_all",
+    "moments",
+    "reliability_reasons",
+    "rounding_floor",
+    "unreliable",
+]

@@ -481,7 +481,7 @@ def test_vegas_plus_allocation(d, n):
     """VEGAS+ bookkeeping: strata as vegas picks them, counts sum to n with an even floor of at
     least two, samples laid out cube by cube, and row-major hypercube corners."""
     from jaxmc._fit._vegas import allocate_to_hypercubes, hypercube_corners, strata_per_axis
-    from jaxmc.stats import slot_of_sample
+    from jaxmc._stats import slot_of_sample
 
     strata = strata_per_axis(d, n, 2**16)
     h = int(np.prod(strata))

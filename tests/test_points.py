@@ -46,17 +46,20 @@ def test_sobol_equals_scipy(n, d, skip):
         expected = _scipy_engine(qmc.Sobol(d, scramble=False), skip).random(n)
     actual = np.asarray(points.sobol(n, d, skip=skip))
     assert actual.dtype == np.float64
-    np.testing.assert_array_equal(actual, expected)
+    # Points lie in the open cube: SciPy's coordinate 0 (point 0) is 2**-53 here.
+    np.testing.assert_array_equal(actual, np.maximum(expected, 2**-53))
 
 
 def test_sobol_max_dim_and_float32():
     expected = qmc.Sobol(points.SOBOL_MAX_DIM, scramble=False).random(4)
-    np.testing.assert_array_equal(np.asarray(points.sobol(4, points.SOBOL_MAX_DIM)), expected)
-    # float32 keeps the top 24 bits: truncation, never rounding up to 1.
+    np.testing.assert_array_equal(
+        np.asarray(points.sobol(4, points.SOBOL_MAX_DIM)), np.maximum(expected, 2**-53)
+    )
+    # float32 keeps the top 24 bits: truncation, never rounding up to 1; never 0 either.
     x32 = np.asarray(points.sobol(256, 3, skip=5, dtype=jnp.float32))
     ref = qmc.Sobol(3, scramble=False)
     ref.fast_forward(5)
-    np.testing.assert_array_equal(x32, np.floor(ref.random(256) * 2**24) / 2**24)
+    np.testing.assert_array_equal(x32, np.maximum(np.floor(ref.random(256) * 2**24), 1) / 2**24)
 
 
 @pytest.mark.parametrize("skip", [0, 2**24 - 300, 2**24 + 5])
@@ -80,7 +83,10 @@ def test_halton_without_x64_matches_scipy(skip):
 @pytest.mark.parametrize("n, d, skip", [(1, 1, 0), (100, 5, 0), (1000, 10, 37), (500, 60, 11)])
 def test_halton_equals_scipy(n, d, skip):
     expected = _scipy_engine(qmc.Halton(d, scramble=False), skip).random(n)
-    np.testing.assert_array_equal(np.asarray(points.halton(n, d, skip=skip)), expected)
+    # Points lie in the open cube: SciPy's origin (index 0) is 2**-53 here.
+    np.testing.assert_array_equal(
+        np.asarray(points.halton(n, d, skip=skip)), np.maximum(expected, 2**-53)
+    )
 
 
 def test_skip_is_a_slice_of_a_longer_sequence(key):
@@ -93,12 +99,12 @@ def test_skip_is_a_slice_of_a_longer_sequence(key):
 def test_lattice_formula():
     n, d = 1024, 6
     z = np.array([1, 182667, 469891, 498753, 110745, 446247])
-    expected = (np.arange(n)[:, None] * z[None, :] % n) / n
+    expected = np.maximum((np.arange(n)[:, None] * z[None, :] % n) / n, 2**-53)  # open cube
     np.testing.assert_array_equal(np.asarray(points.lattice(n, d)), expected)
     # Not a power of two: exact int64 indices; XLA may divide by n with a rounded reciprocal.
     odd = np.asarray(points.lattice(1000, 3))
     np.testing.assert_allclose(
-        odd, (np.arange(1000)[:, None] * z[None, :3] % 1000) / 1000, rtol=3e-16
+        odd, np.maximum((np.arange(1000)[:, None] * z[None, :3] % 1000) / 1000, 2**-53), rtol=3e-16
     )
 
 
@@ -237,7 +243,7 @@ def _lcg_reference(seed, n, a, c, m):
     out, x = [], seed
     for _ in range(n):
         x = (a * x + c) % m
-        out.append(x / m)
+        out.append(max(x / m, 2**-53))  # the open interval: the state 0 gives 2**-53
     return np.array(out)
 
 

@@ -10,10 +10,11 @@ import jax.numpy as jnp
 
 from .. import _random
 from .._box import to_box
-from .._checks import check_bounds, check_callable, check_count, check_key
+from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_key
+from .._diagnostics import warn_if_unreliable
 from .._integrand import evaluate, ratio
+from .._stats import Estimate, estimate_iid
 from ..proposals import check_proposal
-from ..stats import Estimate, estimate_iid
 
 
 def uniform(
@@ -54,14 +55,16 @@ def uniform(
     """
     key = check_key(key)
     f = check_callable(f)
-    lo, hi = check_bounds(lo, hi)
-    n = check_count(n)
+    lo, hi = check_bounds(lo, hi, finite_volume=True)
+    n = check_count(n, maximum=MAX_COUNT)
     u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
     x = to_box(u, lo, hi)
     fx = evaluate(f, x, batched)
     volume = jnp.prod(hi - lo)
     y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (n,)))
-    return estimate_iid(y, bad)
+    est = estimate_iid(y, bad)
+    warn_if_unreliable(est, "uniform")
+    return est
 
 
 def importance(
@@ -97,8 +100,10 @@ def importance(
     key = check_key(key)
     f = check_callable(f)
     proposal = check_proposal(proposal)
-    n = check_count(n)
+    n = check_count(n, maximum=MAX_COUNT)
     x, px = proposal.sample(key, n)
     fx = evaluate(f, x, batched)
     y, bad = ratio(fx, jnp.asarray(px))
-    return estimate_iid(y, bad)
+    est = estimate_iid(y, bad)
+    warn_if_unreliable(est, "importance")
+    return est

@@ -2,6 +2,7 @@ r"""Control variates and antithetic variates for the uniform estimator."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -9,10 +10,10 @@ import jax
 import jax.numpy as jnp
 
 from .. import _random
-from .._box import to_box
+from .._box import clip_to_open_box, to_box
 from .._checks import check_bounds, check_callable, check_count, check_key
 from .._integrand import evaluate, ratio
-from ..stats import Estimate, estimate_iid, moments
+from .._stats import Estimate, diagnosed, estimate_iid, moments, tail_of
 
 
 def _optimal_coefficient(y: jax.Array, z: jax.Array) -> jax.Array:
@@ -111,12 +112,14 @@ def control_variate(
     na, nb = half, n - half
     mean = (na * ma.mean + nb * mb.mean) / n
     variance = (na * ma.m2 / (na - 1) + nb * mb.m2 / (nb - 1)) / n**2
-    return Estimate(
-        mean=mean,
-        variance=variance,
-        n=jnp.asarray(n, dtype=jnp.int32),
-        n_nonfinite=jnp.sum(bad_f | bad_g, dtype=jnp.int32),
-    )
+    contributions = jnp.concatenate([ya - cb * za, yb - ca * zb])
+    return Estimate(**diagnosed(
+        mean,
+        variance,
+        jnp.asarray(n, dtype=jnp.int32),
+        jnp.sum(bad_f | bad_g, dtype=jnp.int32),
+        tail_of(contributions),
+    ))
 
 
 def antithetic(
@@ -157,15 +160,13 @@ def antithetic(
     pairs = n // 2
     u = _random.uniform(key, (pairs,) + lo.shape, lo.dtype)
     x = to_box(u, lo, hi)
-    x = jnp.concatenate([x, lo + hi - x])
+    # The reflection can round onto a face: kept in the open box like every sample.
+    x = jnp.concatenate([x, clip_to_open_box(lo + hi - x, lo, hi)])
     fx = evaluate(f, x, batched)
     volume = jnp.prod(hi - lo)
     y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (n,)))
     pair_means = 0.5 * (y[:pairs] + y[pairs:])
     est = estimate_iid(pair_means, bad[:pairs] | bad[pairs:])
-    return Estimate(
-        mean=est.mean,
-        variance=est.variance,
-        n=jnp.asarray(n, dtype=jnp.int32),
-        n_nonfinite=jnp.sum(bad, dtype=jnp.int32),
+    return dataclasses.replace(
+        est, n=jnp.asarray(n, dtype=jnp.int32), n_nonfinite=jnp.sum(bad, dtype=jnp.int32)
     )

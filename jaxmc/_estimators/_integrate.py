@@ -8,6 +8,7 @@ VEGAS+ grid of `"adaptive"`), and labels the result with the method used.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Callable
@@ -17,22 +18,26 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh
+from jax.sharding import AbstractMesh, AxisType, Mesh
 
 from .._checks import (
+    MAX_COUNT,
+    as_real_array,
     check_bounds,
     check_callable,
     check_choice,
     check_count,
+    check_flag,
     check_key,
     is_concrete,
 )
+from .._diagnostics import warn_if_unreliable
 from .._fit._vegas import strata_per_axis
+from .._stats import Estimate, ReliabilityWarning, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus
 from ..proposals import Grid
-from ..stats import Estimate, ReliabilityWarning
 from ._auto import GRID_BINS, Pilot, run_adaptation, run_pilot
-from ._stream import BLOCK, plan, stream
+from ._stream import BLOCK, plan, stream_on_mesh
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
@@ -127,8 +132,13 @@ def integrate(
     - `nonfinite`: `"raise"` (default) raises `FloatingPointError` when some
       $f/p$ was not finite; `"drop"` lets those samples contribute zero (they
       are still counted in `n_nonfinite`).
-    - `mesh`: a `jax.sharding.Mesh` whose devices share the blocks (default:
-      all devices of the default backend).
+    - `mesh`: a `jax.sharding.Mesh` whose devices share the blocks, over all
+      its axes, whatever their names. Default: the context mesh of
+      `jax.set_mesh`, else all devices of the default backend (of every
+      process joined by `jax.distributed.initialize`). Inside a `shard_map`
+      each device integrates on its own. An integrand that captures arrays
+      sharded on `Explicit` mesh axes (under `jit` or `vmap` over sharded
+      parameters) is run as one program, every device's blocks in it.
     - `progress`: print the running estimate after every chunk.
     - `batched`: `f` receives the whole `(m, d)` batch.
 
@@ -149,11 +159,13 @@ def integrate(
     """
     key = check_key(key)
     f = check_callable(f)
-    lo, hi = check_bounds(lo, hi)
+    lo, hi = check_bounds(lo, hi, finite_volume=True)
     method = check_choice(method, "method", METHODS)
     nonfinite = check_choice(nonfinite, "nonfinite", ("raise", "drop"))
-    rtol = _check_tolerance(rtol, "rtol")
-    atol = _check_tolerance(atol, "atol")
+    rtol = _check_tolerance(rtol, "rtol", lo.dtype)
+    atol = _check_tolerance(atol, "atol", lo.dtype)
+    progress = check_flag(progress, "progress")
+    batched = check_flag(batched, "batched")
     if n is None and rtol is None and atol is None:
         raise ValueError("give a budget `n` or a tolerance `rtol`/`atol` to `integrate`.")
     if n is not None:
@@ -161,15 +173,13 @@ def integrate(
         if max_n is not None:
             raise ValueError("give either `n` or `max_n` (the budget with tolerances), not both.")
     budget = n if n is not None else check_count(max_n if max_n is not None else MAX_N, "max_n")
-    if budget >= 2**31:
-        raise ValueError(f"the evaluation budget must be < 2**31, got {budget}.")
-    chunk = check_count(chunk if chunk is not None else CHUNK, "chunk")
-    if mesh is None:
-        mesh = jax.make_mesh(
-            (len(jax.devices()),), ("blocks",), axis_types=(jax.sharding.AxisType.Auto,)
+    if budget > MAX_COUNT:
+        raise ValueError(
+            f"the evaluation budget `{'n' if n is not None else 'max_n'}` must be at most "
+            f"2**31 - 1 (counts are int32), got {budget}."
         )
-    elif not isinstance(mesh, Mesh):
-        raise TypeError(f"`mesh` must be a jax.sharding.Mesh, got {type(mesh).__name__}.")
+    chunk = check_count(chunk if chunk is not None else CHUNK, "chunk")
+    mesh = _blocks_mesh(mesh)
     tolerant = rtol is not None or atol is not None
     run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,
                jnp.asarray(rtol if rtol is not None else 0.0, lo.dtype),
@@ -194,7 +204,7 @@ def integrate(
             est = branches[int(pilot.choice)]()
         else:  # chosen under jit: both streams are compiled, one runs
             est = jax.lax.switch(pilot.choice, branches)
-        est = Estimate(est.mean, est.variance, est.n + spent, est.n_nonfinite)
+        est = dataclasses.replace(est, n=est.n + spent)
     elif method == "adaptive":
         est = run.adaptive(key, budget, Grid(lo, hi, bins=ADAPT_BINS))
     else:
@@ -203,7 +213,11 @@ def integrate(
     if tolerant:
         tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
         converged = jnp.all(est.stderr <= tol)
-    est = IntegrationEstimate(est.mean, est.variance, est.n, est.n_nonfinite, method, pilot, converged)
+    est = IntegrationEstimate(
+        **estimate_fields(est), method=method, pilot=pilot, converged=converged
+    )
+    if tolerant:
+        est = _forward_mode_only(est)
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
     if tolerant and is_concrete(converged) and not bool(converged):
@@ -214,6 +228,11 @@ def integrate(
             ReliabilityWarning,
             stacklevel=2,
         )
+    # (Values dropped on request, with nonfinite="drop", are not news.)
+    fields = estimate_fields(est)
+    if nonfinite == "drop":
+        fields["n_nonfinite"] = jnp.zeros_like(est.n_nonfinite)
+    warn_if_unreliable(Estimate(**fields), "integrate")
     return est
 
 
@@ -231,13 +250,13 @@ class _Run:
         self.d = 1 if lo.ndim == 0 else lo.shape[0]
 
     def _stream(self, key, frozen, run_plan):
-        return stream(
+        return stream_on_mesh(
             key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
             mesh=self.mesh, tolerant=self.tolerant, progress=self.progress, batched=self.batched,
         )
 
     def block_method(self, method, key, budget):
-        run_plan = plan(method, budget, self.chunk, self.mesh.devices.size, self.d,
+        run_plan = plan(method, budget, self.chunk, self.mesh.size, self.d,
                         tolerant=self.tolerant)
         return self._stream(key, None, run_plan)
 
@@ -250,11 +269,11 @@ class _Run:
         rounds = training_rounds(budget, block) if rounds is None else rounds
         key, frozen, trained = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
         est = self.frozen_grid(key, budget - trained, frozen, block)
-        return Estimate(est.mean, est.variance, est.n + trained, est.n_nonfinite)
+        return dataclasses.replace(est, n=est.n + trained)
 
     def frozen_grid(self, key, budget, frozen, block):
         """Stream VEGAS+ rounds of `block` points on a frozen `(grid, counts, strata)`."""
-        run_plan = plan("adaptive", budget, self.chunk, self.mesh.devices.size, self.d, block)
+        run_plan = plan("adaptive", budget, self.chunk, self.mesh.size, self.d, block)
         return self._stream(key, frozen, run_plan)
 
 
@@ -298,26 +317,100 @@ def frozen_vegas_plus(state, block: int):
     return state.grid, state.draw.counts, strata_per_axis(state.grid.dim, block, VegasPlus().max_strata)
 
 
-def _check_tolerance(tol: Any, name: str) -> Any:
+def _blocks_mesh(mesh: Mesh | None) -> Mesh | AbstractMesh:
+    """The mesh whose devices share the blocks: `mesh`, else the context mesh of
+    `jax.set_mesh` (all its axes), else all devices of the default backend."""
+    context = jax.sharding.get_abstract_mesh()
+    if mesh is not None:
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"`mesh` must be a jax.sharding.Mesh, got {type(mesh).__name__}.")
+        if not context.empty and mesh.abstract_mesh != context:
+            raise ValueError(
+                f"`mesh` {mesh} differs from the context mesh {context} set by jax.set_mesh; "
+                "pass mesh=None to share the blocks over the context mesh."
+            )
+        return mesh
+    if context.empty:
+        return jax.make_mesh((len(jax.devices()),), ("blocks",), axis_types=(AxisType.Auto,))
+    if context.manual_axes:
+        # Inside a user's shard_map every device integrates on its own.
+        return AbstractMesh((1,), ("blocks",))
+    return context
+
+
+def _check_tolerance(tol: Any, name: str, dtype: Any) -> Any:
+    """A tolerance: one real scalar >= 0 (checked in value when concrete). A relative
+    tolerance below the rounding floor of the integration `dtype` cannot be met."""
     if tol is None:
         return None
-    if is_concrete(tol):
-        value = np.asarray(tol)
-        if value.shape != () or not np.isfinite(value) or value < 0:
-            raise ValueError(f"`{name}` must be a finite scalar >= 0, got {tol!r}.")
+    if isinstance(tol, (bool, np.bool_)):
+        raise TypeError(f"`{name}` must be a real number, got {tol!r}.")
+    value = as_real_array(tol, f"`{name}` must be a real number")
+    if value.shape != ():
+        raise ValueError(
+            f"`{name}` must be a scalar (one tolerance for every component), got shape {value.shape}."
+        )
+    if is_concrete(tol):  # (under jit, `value` may be staged even for a Python float)
+        value = float(np.asarray(tol))
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"`{name}` must be a finite number >= 0, got {value!r}.")
+        if name == "rtol" and 0 < value < rounding_floor(dtype):
+            raise ValueError(_unreachable_rtol(value, dtype))
     return tol
 
 
-def _raise_on_nonfinite(est: Estimate) -> Estimate:
-    message = (
-        "the integrand (divided by the density) was not finite at some samples; "
-        "call integrate(..., nonfinite='drop') to let them contribute zero"
+def _unreachable_rtol(rtol: float, dtype: Any) -> str:
+    floor, dtype = rounding_floor(dtype), np.dtype(dtype)
+    fix = f"use rtol >= {floor:.1e}"
+    if dtype != np.float64:
+        x64 = 'jax.config.update("jax_enable_x64", True)'
+        how = "pass float64 bounds `lo`, `hi` (float64 is on)" if jax.config.jax_enable_x64 else x64
+        fix = f"integrate in float64 ({how}), or {fix}"
+    return (
+        f"`rtol`={rtol:g} is below what {dtype.name} arithmetic can deliver: the rounding error "
+        f"of the mean is about {floor:.1e} of its magnitude; {fix}."
     )
+
+
+_NONFINITE_MESSAGE = (
+    "jaxmc.integrate: f(x)/p(x) was not finite (NaN or inf) at some samples, so the "
+    "estimate would be meaningless. Typically `f` has a singularity or is evaluated outside "
+    "its domain (a log or sqrt of a negative number). Fix `f` there (e.g. with jnp.where), or "
+    "pass nonfinite='drop' to let those samples contribute zero; they are then counted in "
+    "the result's `n_nonfinite`."
+)
+
+
+def _raise_on_nonfinite(est: Estimate) -> Estimate:
+    """`FloatingPointError` with the count outside `jit`; under `jit` a runtime error
+    (`eqx.error_if`) whose text carries the same message (under `jax.jit` inside a
+    `JaxRuntimeError`; `equinox.filter_jit` raises it cleanly)."""
     if is_concrete(est.n_nonfinite):
         count = int(est.n_nonfinite)
         if count:
-            raise FloatingPointError(f"{message} ({count} of {int(est.n)} evaluations).")
+            raise FloatingPointError(
+                f"{_NONFINITE_MESSAGE} ({count:,} of {int(est.n):,} evaluations were not finite.)"
+            )
         return est
-    return eqx.error_if(est, est.n_nonfinite > 0, message + ".")
+    return eqx.error_if(est, est.n_nonfinite > 0, _NONFINITE_MESSAGE)
+
+
+_REVERSE_MODE_MESSAGE = (
+    "jaxmc.integrate: reverse-mode differentiation (jax.grad, jax.vjp) needs a fixed sample "
+    "count, and a run with a tolerance `rtol`/`atol` stops when the tolerance is met (a "
+    "while_loop, which JAX cannot differentiate backwards). Pass `n=` without `rtol`/`atol`, "
+    "or differentiate in forward mode (jax.jvp, jax.jacfwd), which works with tolerances."
+)
+
+
+def _forward_mode_only(est: Estimate) -> Estimate:
+    """A tolerance run's result, through an identity whose transpose raises `_REVERSE_MODE_MESSAGE`.
+
+    Reverse mode transposes from the outputs back, so `jax.grad` stops here, at
+    trace time, before it reaches the tolerance loop; forward mode passes through.
+    """
+    floats, rest = eqx.partition(est, eqx.is_inexact_array)
+    floats = eqx.internal.nondifferentiable_backward(floats, msg=_REVERSE_MODE_MESSAGE)
+    return eqx.combine(floats, rest)
 
 

@@ -22,8 +22,8 @@ from .._checks import (
     is_concrete,
 )
 from .._integrand import evaluate, ratio
+from .._stats import Estimate, diagnosed, estimate_iid, moments, tail_of
 from ..proposals import check_proposal
-from ..stats import Estimate, estimate_iid, moments
 from ._mis_weights import HEURISTICS, mis_weights, safe_log
 
 
@@ -145,6 +145,7 @@ def mis(
     mean = 0.0
     variance = 0.0
     n_bad = jnp.zeros((), jnp.int32)
+    contributions = []
     start = 0
     for k, nk in enumerate(counts):
         sl = slice(start, start + nk)
@@ -160,15 +161,17 @@ def mis(
             w = mis_weights(sc, heuristic, beta, technique=k)
             y, bad = ratio(fk * w.reshape(w.shape + (1,) * (fk.ndim - 1)), own[k])
         mom = moments(y)
+        contributions.append(y * (sum(counts) / nk))  # so that the mean is their sum / N
         mean = mean + mom.mean
         variance = variance + (mom.m2 / (nk - 1) / nk if nk > 1 else jnp.inf)
         n_bad = n_bad + jnp.sum(bad, dtype=jnp.int32)
-    return Estimate(
-        mean=mean,
-        variance=jnp.asarray(variance * jnp.ones_like(mean), mean.dtype),
-        n=jnp.asarray(sum(counts), dtype=jnp.int32),
-        n_nonfinite=n_bad,
-    )
+    return Estimate(**diagnosed(
+        mean,
+        jnp.asarray(variance * jnp.ones_like(mean), mean.dtype),
+        jnp.asarray(sum(counts), dtype=jnp.int32),
+        n_bad,
+        tail_of(jnp.concatenate(contributions)),
+    ))
 
 
 def _check_probs(probs: Any, s: int) -> jax.Array:

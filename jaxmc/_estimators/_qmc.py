@@ -12,10 +12,11 @@ import jax.numpy as jnp
 from jax.scipy.special import betainc
 
 from .._box import to_box
-from .._checks import check_bounds, check_callable, check_count, check_key
+from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_key
+from .._diagnostics import bounded_variance
 from .._integrand import evaluate, ratio
 from .._points._registry import unit_points
-from ..stats import Estimate, check_level
+from .._stats import Estimate, check_level, diagnosed, tail_of
 
 
 POINT_SETS = ("sobol", "halton", "lattice", "latin_hypercube", "stratified")
@@ -148,9 +149,14 @@ def randomized_qmc(
     """
     key = check_key(key)
     f = check_callable(f)
-    lo, hi = check_bounds(lo, hi)
+    lo, hi = check_bounds(lo, hi, finite_volume=True)
     n = check_count(n)
     replicas = check_count(replicas, "replicas")
+    if n * replicas > MAX_COUNT:
+        raise ValueError(
+            f"`n` * `replicas` = {n * replicas:,} evaluations must be at most 2**31 - 1 "
+            "(counts are int32)."
+        )
     d = 1 if lo.ndim == 0 else lo.shape[0]
     generate = _point_generator(points, n, d)
     keys = jax.random.split(key, replicas)
@@ -172,11 +178,15 @@ def randomized_qmc(
         variance = jnp.sum((per_replica - mean) ** 2, axis=0) / (replicas - 1) / replicas
     else:
         variance = jnp.full(mean.shape, jnp.inf, mean.dtype)
+    tail = tail_of(y)
     return QMCEstimate(
-        mean=mean,
-        variance=variance,
-        n=jnp.asarray(n * replicas, dtype=jnp.int32),
-        n_nonfinite=jnp.sum(bad, dtype=jnp.int32),
+        **diagnosed(
+            mean,
+            bounded_variance(variance, mean, tail),
+            jnp.asarray(n * replicas, dtype=jnp.int32),
+            jnp.sum(bad, dtype=jnp.int32),
+            tail,
+        ),
         replicas=replicas,
     )
 

@@ -11,10 +11,11 @@ import numpy as np
 
 from .. import _random
 from .._box import to_box
-from .._checks import check_bounds, check_callable, check_count, check_key
+from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_flag, check_key
+from .._diagnostics import bounded_variance
 from .._integrand import evaluate, ratio
 from .._points._random_sets import check_counts
-from ..stats import Estimate
+from .._stats import Estimate, diagnosed, tail_of
 
 
 def snake_order(counts: tuple[int, ...]) -> np.ndarray:
@@ -110,13 +111,17 @@ def stratified(
     """
     key = check_key(key)
     f = check_callable(f)
-    lo, hi = check_bounds(lo, hi)
+    lo, hi = check_bounds(lo, hi, finite_volume=True)
     d = 1 if lo.ndim == 0 else lo.shape[0]
     counts = check_counts(counts, d, scalar=lo.ndim == 0)
     m = check_count(per_stratum, "per_stratum")
-    if not isinstance(batched, bool):
-        raise TypeError(f"`batched` must be a bool, got {type(batched).__name__}.")
     cells = int(np.prod(counts))
+    if cells * m > MAX_COUNT:
+        raise ValueError(
+            f"`counts` {counts} with `per_stratum` = {m} give {cells * m:,} evaluations, which "
+            "must be at most 2**31 - 1 (counts are int32)."
+        )
+    batched = check_flag(batched, "batched")
     # Cell corners in C order, computed in the graph (no M x d constant baked in).
     corner = jnp.stack(jnp.unravel_index(jnp.arange(cells), counts), axis=-1).astype(lo.dtype)
     cell_size = 1.0 / jnp.asarray(counts, dtype=lo.dtype)
@@ -143,10 +148,13 @@ def stratified(
         variance = total / cells**2
     else:
         variance = jnp.full(mean.shape, jnp.inf, mean.dtype)
-    return Estimate(
-        mean=mean,
-        variance=jnp.asarray(variance, mean.dtype),
-        n=jnp.asarray(cells * m, dtype=jnp.int32),
-        n_nonfinite=jnp.sum(bad, dtype=jnp.int32),
-    )
+    # Equal strata with equal counts: every sample's contribution is its own value.
+    tail = tail_of(y.reshape((cells * m,) + y.shape[2:]))
+    return Estimate(**diagnosed(
+        mean,
+        bounded_variance(jnp.asarray(variance, mean.dtype), mean, tail),
+        jnp.asarray(cells * m, dtype=jnp.int32),
+        jnp.sum(bad, dtype=jnp.int32),
+        tail,
+    ))
 

@@ -43,19 +43,22 @@ from jax.sharding import PartitionSpec
 
 from .. import _random
 from .._box import to_box
+from .._diagnostics import bounded_variance
 from .._fit._vegas import stratified_unit_points
 from .._integrand import evaluate, ratio
 from .._points._common import uint32_to_unit
 from .._points._registry import unit_points
 from .._points._sobol import sobol_block, sobol_scramble
-from ..stats import (
+from .._stats import (
     Estimate,
     Moments,
     block_moments,
+    diagnosed,
     estimate_from_moments,
     merge,
     merge_across_devices,
     merge_all,
+    tail_of,
 )
 
 
@@ -176,7 +179,8 @@ def _vegas_plus_block(key, frozen, n, f, batched):
     # v sum_h mean_h = v sum_i y_i / n_{h(i)}, with no per-hypercube reduction.
     per_point = 1.0 / (counts.shape[0] * jnp.maximum(counts, 1).astype(y.dtype))[draw.cube]
     mean = jnp.sum(y * jnp.reshape(per_point, (-1,) + (1,) * (y.ndim - 1)), axis=0)
-    m = Moments(jnp.ones((), y.dtype), mean, jnp.zeros_like(mean))
+    # The diagnostics are of the values y = f/p (as `stats.stratified_estimate`'s).
+    m = Moments(jnp.ones((), y.dtype), mean, jnp.zeros_like(mean), tail_of(y))
     return m, jnp.asarray(n, jnp.int32), jnp.sum(bad, dtype=jnp.int32)
 
 
@@ -188,7 +192,7 @@ def _one_hot_moments(m: Moments, slot: jax.Array, slots: int) -> Moments:
     def place(a):
         return jnp.where(jnp.reshape(hot, (slots,) + (1,) * a.ndim), a[None], jnp.zeros_like(a)[None])
 
-    return Moments(count, place(m.mean), place(m.m2))
+    return Moments(count, place(m.mean), place(m.m2), m.tail)
 
 
 def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate:
@@ -198,7 +202,8 @@ def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate
     means = total.mean
     mean = jnp.mean(means, axis=0)
     var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
-    return Estimate(mean=mean, variance=var, n=evaluations, n_nonfinite=bad)
+    var = bounded_variance(var, mean, total.tail)
+    return Estimate(**diagnosed(mean, var, evaluations, bad, total.tail))
 
 
 @partial(eqx.filter_jit)
@@ -209,7 +214,6 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
     dtype = lo.dtype
     volume = jnp.prod(hi - lo)
     per_sample = method == "plain"
-    axes = tuple(mesh.axis_names)
     if method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
             jax.random.split(key, plan.replicas)
@@ -249,34 +253,26 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         if not per_sample:
             # The block is one randomisation: one observation, its mean.
             unit = jnp.where(m.count > 0, 1.0, 0.0).astype(dtype)
-            m = Moments(unit, m.mean, jnp.zeros_like(m.m2))
+            m = Moments(unit, m.mean, jnp.zeros_like(m.m2), m.tail)
         if method == "qmc":
             # Its replica's running mean weighs it by its points.
-            m = _one_hot_moments(Moments(m.count * plan.block, m.mean, m.m2), b % plan.replicas,
+            m = _one_hot_moments(m._replace(count=m.count * plan.block), b % plan.replicas,
                                  plan.replicas)
         return m, jnp.sum(valid, dtype=jnp.int32), jnp.sum(bad & valid, dtype=jnp.int32)
 
-    single = mesh.devices.size == 1
-
-    def local(t):
+    def local(t, device):
         # Device j takes slots [j * per_device, (j + 1) * per_device) of step t's blocks.
-        device = 0 if single else jax.lax.axis_index(axes)
         slot = device * plan.per_device + jnp.arange(plan.per_device, dtype=jnp.int32)
         blocks = t * plan.per_step + slot
         inside = (slot < plan.per_step) & (blocks < plan.blocks)
         m, evaluations, bad = jax.vmap(moments_of_block)(blocks, inside)
-        m = merge_all(m)
-        evaluations, bad = jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
-        if single:
-            return m, evaluations, bad
-        return merge_across_devices(m, axes), jax.lax.psum(evaluations, axes), jax.lax.psum(bad, axes)
+        return merge_all(m), jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
 
-    # One device needs no collectives; skipping shard_map there keeps compiles short.
-    sharded = local if single else jax.shard_map(
-        local, mesh=mesh, in_specs=PartitionSpec(), out_specs=PartitionSpec()
-    )
+    # One device needs no collectives (and `stream_on_mesh` no shard_map): compiles stay short.
+    sharded = partial(local, device=0) if mesh.size == 1 else partial(_across_devices, local, mesh)
     start = _empty_like(jax.eval_shape(lambda: moments_of_block(jnp.int32(0), True)[0]))
     zero = jnp.zeros((), jnp.int32)
+    start, zero = jax.tree.map(partial(_carry_typed, mesh=mesh), (start, zero))
 
     def step(carry, t):
         total, evaluations, bad = carry
@@ -284,7 +280,9 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         carry = (merge(total, m), evaluations + e, bad + b)
         if progress:
             est = stream_estimate(*carry, plan.replicas)
-            jax.debug.callback(_report, est.mean, est.stderr, est.n)
+            # Every device of a shard_map runs this step: the first one reports.
+            report = partial(jax.debug.callback, _report, est.mean, est.stderr, est.n)
+            jax.lax.cond(_this_device(mesh)[0] == 0, report, lambda: None)
         return carry
 
     if not tolerant:
@@ -310,6 +308,101 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             cond, lambda s: (s[0] + 1, step(s[1], s[0])), (zero, (start, zero, zero))
         )
     return stream_estimate(*carry, plan.replicas)
+
+
+def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **settings):
+    """`stream`, each device of `mesh` running its share of the blocks under `shard_map`.
+
+    The arrays enter `shard_map` as arguments, replicated: it may not close over
+    arrays typed as sharded on `Explicit` mesh axes (a user's `jax.set_mesh`).
+    An integrand that captures such arrays (its parameters, under `jit` or `vmap`
+    in a mesh context) rules `shard_map` out: one program then runs every
+    device's blocks, and the compiler places it (a `vmap`'s batch stays sharded).
+    """
+    args = (key, frozen, lo, hi, rtol, atol)
+    settings = dict(settings, f=f, mesh=mesh, batched=batched)
+    if mesh.size == 1:
+        return stream(*args, **settings)
+    point = jnp.zeros((1,) + lo.shape, lo.dtype)
+    captured = jax.make_jaxpr(lambda x: evaluate(f, x, batched))(point).consts
+    typed = [m for m in map(_typed_mesh, captured) if m is not None]
+    if typed:
+        with jax.sharding.use_abstract_mesh(typed[0]):
+            return stream(*args, **settings)
+    return _sharded_stream(args, settings)
+
+
+@eqx.filter_jit
+def _sharded_stream(args, settings):
+    """`stream(*args, **settings)` under `shard_map` over `settings["mesh"]`, taking its arrays as arguments."""
+    arrays, static = eqx.partition(args, eqx.is_array)
+    return jax.shard_map(
+        lambda arrays: stream(*eqx.combine(arrays, static), **settings),
+        mesh=settings["mesh"], in_specs=PartitionSpec(), out_specs=PartitionSpec(),
+    )(jax.tree.map(_replicated, arrays))
+
+
+def _across_devices(local, mesh, t):
+    """Step `t` of every device of `mesh`: `local(t, device)` on this device's blocks, merged by collectives.
+
+    Run by `stream_on_mesh`'s `shard_map`, whose manual axes give the device.
+    Axes that are not manual there (mapped away by a user's `vmap` of a batch
+    sharded on them, or everywhere when `shard_map` was ruled out) are run here,
+    device after device along them, so every block is still evaluated once.
+    """
+    device, manual, mapped = _this_device(mesh)
+    if not mapped:
+        m, evaluations, bad = local(t, device)
+    else:
+        grid = np.indices([size for size, _ in mapped]).reshape(len(mapped), -1)
+        others = jnp.asarray(sum(i * stride for i, (_, stride) in zip(grid, mapped)), jnp.int32)
+        m, evaluations, bad = jax.vmap(lambda other: local(t, device + other))(others)
+        m, evaluations, bad = merge_all(m), *(jnp.sum(c, dtype=jnp.int32) for c in (evaluations, bad))
+    if not manual:
+        return m, evaluations, bad
+    return merge_across_devices(m, manual), jax.lax.psum(evaluations, manual), jax.lax.psum(bad, manual)
+
+
+def _this_device(mesh):
+    """This device's row-major index over the manual axes of `mesh` (as `axis_index(axes)`),
+    those axes, and the `(size, stride)` of the others (all of them outside `shard_map`)."""
+    axes = tuple(mesh.axis_names)
+    sizes = [mesh.shape[a] for a in axes]
+    strides = [math.prod(sizes[i + 1 :]) for i in range(len(axes))]
+    manual = tuple(a for a in axes if a in jax.sharding.get_abstract_mesh().manual_axes)
+    device = sum((jax.lax.axis_index(a) * strides[axes.index(a)] for a in manual), jnp.int32(0))
+    mapped = [(size, stride) for a, size, stride in zip(axes, sizes, strides) if a not in manual]
+    return device, manual, mapped
+
+
+def _typed_mesh(a):
+    """The mesh of `a`'s type if it has `Explicit` axes (a sharding JAX tracks), else None."""
+    if not isinstance(a, jax.Array):
+        return None
+    typed = jax.typeof(a).sharding.mesh
+    return typed if jax.sharding.AxisType.Explicit in typed.axis_types else None
+
+
+def _carry_typed(a, mesh):
+    """`a` typed to start a loop carry in the caller's context: varying over the manual axes
+    of a user's `shard_map` (the integrand's parameters may vary there), and replicated on an
+    `Explicit` context mesh (so the sharded batch of a user's `vmap` can join it)."""
+    context = jax.sharding.get_abstract_mesh()
+    ours = set(mesh.axis_names) if mesh.size > 1 else set()
+    manual = tuple(axis for axis in context.manual_axes if axis not in ours)
+    if manual:
+        a = jax.lax.pcast(a, manual, to="varying")
+    if jax.sharding.AxisType.Explicit in context.axis_types:
+        a = jax.sharding.reshard(a, PartitionSpec())
+    return a
+
+
+def _replicated(a):
+    """`a` replicated over its mesh: a no-op unless its type shards it over `Explicit` axes."""
+    sharding = jax.typeof(a).sharding
+    if all(part is None for part in sharding.spec):
+        return a
+    return jax.sharding.reshard(a, sharding.update(spec=PartitionSpec()))
 
 
 def _empty_like(shapes: Moments) -> Moments:

@@ -12,9 +12,10 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._checks import check_callable, check_choice, check_count, check_key, is_concrete
+from .._checks import MAX_COUNT, check_callable, check_choice, check_count, check_key, is_concrete
+from .._diagnostics import warn_if_unreliable
+from .._stats import Combined, Estimate, ReliabilityWarning, combine, estimate_fields
 from ..proposals import GaussianMixture, Grid, Partition, check_proposal
-from ..stats import Combined, ReliabilityWarning, combine
 from ._miser import PartitionGrowth
 from ._objectives import OBJECTIVES
 from ._refit import Refit
@@ -151,10 +152,15 @@ def adapt(
     f = check_callable(f)
     proposal = check_proposal(proposal, methods=("sample", "log_pdf"))
     iterations = check_count(iterations, "iterations")
-    n = check_count(n_per_iteration, "n_per_iteration", minimum=2)
+    n = check_count(n_per_iteration, "n_per_iteration", minimum=2, maximum=MAX_COUNT)
     warmup = check_count(warmup, "warmup", minimum=0)
     if warmup >= iterations:
         raise ValueError(f"`warmup` must be < `iterations` = {iterations}, got {warmup}.")
+    if iterations * n > MAX_COUNT:
+        raise ValueError(
+            f"`iterations` * `n_per_iteration` = {iterations * n:,} evaluations must be at most "
+            "2**31 - 1 (counts are int32)."
+        )
     if rule is None:
         alpha = _check_fraction(alpha, "alpha")
         beta = _check_fraction(beta, "beta")
@@ -194,6 +200,8 @@ def _warn_if_rounds_disagree(combined: Combined) -> Combined:
             ReliabilityWarning,
             stacklevel=3,
         )
+    # The other diagnostics (the q above is said in adaptive terms).
+    warn_if_unreliable(Estimate(**estimate_fields(combined)), "adapt", stacklevel=4)
     return combined
 
 

@@ -22,7 +22,7 @@ import optimistix as optx
 
 from .. import _random
 from .._box import log_volume, to_box
-from .._checks import check_callable, check_choice, check_count, check_key
+from .._checks import MAX_COUNT, check_callable, check_choice, check_count, check_key
 from .._integrand import evaluate
 from ..proposals import check_proposal, weighted_draw
 from ._default_fit import default_fit, has_default_fit
@@ -236,7 +236,7 @@ def fit(
     key = check_key(key)
     f = check_callable(f)
     proposal = check_proposal(proposal, methods=("sample", "log_pdf"))
-    n = check_count(n)
+    n = check_count(n, maximum=MAX_COUNT)
     max_steps = check_count(max_steps, "max_steps")
     objective = check_choice(objective, "objective", OBJECTIVES)
     steps_per_batch = check_count(steps_per_batch, "steps_per_batch")

@@ -17,8 +17,8 @@ import jax.numpy as jnp
 from .. import _random
 from .._integrand import ratio
 from .._proposals._partition import MAX_LEVEL
+from .._stats import slot_of_sample, stratified_estimate
 from ..proposals import Partition
-from ..stats import slot_of_sample, stratified_estimate
 from ._rule import AbstractAdaptation, Integrand, Samples
 
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .._integrand import ratio
-from ..stats import estimate_iid
+from .._stats import estimate_iid
 from ._objectives import OBJECTIVES, log_abs, objective_loss
 from ._rule import AbstractAdaptation, Integrand, Samples
 from ._solvers import check_solver, split_parameters

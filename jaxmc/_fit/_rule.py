@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from .._integrand import evaluate
-from ..stats import Estimate
+from .._stats import Estimate
 
 
 class Integrand(eqx.Module):

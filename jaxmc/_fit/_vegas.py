@@ -19,8 +19,9 @@ import numpy as np
 
 from .. import _random
 from .._integrand import ratio
+from .._points._common import open_unit
+from .._stats import estimate_iid, slot_of_sample, stratified_estimate
 from ..proposals import Grid
-from ..stats import estimate_iid, slot_of_sample, stratified_estimate
 from ._rule import AbstractAdaptation, Integrand, Samples
 
 
@@ -157,12 +158,13 @@ def stratified_unit_points(raw: jax.Array, counts: jax.Array, strata: tuple[int,
     """Jitter uniforms `raw` `(n, d)` into the hypercubes of the unit cube, `counts[h]` in cube `h`.
 
     The cubes are the `prod(strata)` cells of a grid with `strata[j]` cells along
-    axis $j$ (row-major order); the points come laid out cube by cube.
+    axis $j$ (row-major order); the points come laid out cube by cube. They lie
+    in the open cube: $(c + r)/s$ rounds to 1 in the last cube for $r$ near 1.
     """
     n = raw.shape[0]
     cube = slot_of_sample(counts, n)
     corner = hypercube_corners(cube, strata, raw.dtype)
-    u = ((corner + raw) / np.asarray(strata, corner.dtype)).astype(raw.dtype)
+    u = open_unit(((corner + raw) / np.asarray(strata, corner.dtype)).astype(raw.dtype))
     return StratifiedDraw(u, cube, counts)
 
 

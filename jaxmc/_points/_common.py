@@ -1,4 +1,4 @@
-"""Helpers shared by the point sets: dtypes, the x64 switch, 32-bit words to floats."""
+"""Helpers shared by the point sets: dtypes, the x64 switch, 32-bit words to floats in $(0, 1)$."""
 
 from __future__ import annotations
 
@@ -29,21 +29,36 @@ def below_one(dtype: Any) -> float:
     return float(np.nextafter(np.array(1.0, dtype=dtype), np.array(0.0, dtype=dtype)))
 
 
+def open_unit(x: jax.Array) -> jax.Array:
+    r"""Points of $[0, 1]$ clipped into the open interval: $[2^{-p}, 1 - 2^{-p}]$.
+
+    $1 - 2^{-p}$ is the largest float below 1 ($p = 24$ in float32, 53 in
+    float64), and the lower end mirrors it, so $1 - u$ stays inside too and an
+    integrand singular at both ends (an inverse normal CDF) meets both alike.
+    Only values within $2^{-p}$ of an end move, by less than $2^{-p}$: the
+    strata of a net (intervals of width $\ge 2^{1-p}$) keep their points.
+    """
+    top = below_one(x.dtype)
+    return jnp.clip(x, x.dtype.type(1.0 - top), x.dtype.type(top))
+
+
 def x64_enabled() -> bool:
     """Whether `jax_enable_x64` is on, i.e. 64-bit integers and floats exist under `jit`."""
     return bool(jax.config.read("jax_enable_x64"))
 
 
 def uint32_to_unit(x: jax.Array, dtype: np.dtype) -> jax.Array:
-    """Map 32-bit integers $x$ to $x / 2^{32}$ in `dtype`, always `< 1`.
+    """Map 32-bit integers $x$ to $x / 2^{32}$ in `dtype`, in the open interval $(0, 1)$.
 
     In float64 this is exact; in float32 (24-bit mantissa) the integer is
     truncated to its top 24 bits first, so the result never rounds up to 1.
+    The one value that would be 0 ($x < 2^{32-p}$) becomes $2^{-p}$ (`open_unit`),
+    still inside every elementary interval of width $2^{1-p}$ or more that held it.
     """
     if jnp.finfo(dtype).nmant >= 32:
-        return x.astype(dtype) * dtype.type(2.0**-32)
+        return open_unit(x.astype(dtype) * dtype.type(2.0**-32))
     shift = 32 - (jnp.finfo(dtype).nmant + 1)
-    return (x >> np.uint32(shift)).astype(dtype) * dtype.type(2.0 ** -(32 - shift))
+    return open_unit((x >> np.uint32(shift)).astype(dtype) * dtype.type(2.0 ** -(32 - shift)))
 
 
 def check_skip(skip: Any) -> int:

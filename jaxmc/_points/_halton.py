@@ -11,7 +11,7 @@ import numpy as np
 from jax import lax
 
 from .._checks import check_count, check_key
-from ._common import below_one, check_skip, float_dtype, uint32_to_unit, x64_enabled
+from ._common import check_skip, float_dtype, open_unit, uint32_to_unit, x64_enabled
 
 
 @functools.cache
@@ -162,7 +162,7 @@ def _halton(key, n, d, skip, dtype):
                 x = x + digit.astype(acc) * jnp.asarray(r_t, acc)[None, :]
         columns.append(x)
     x = jnp.concatenate(columns, axis=1) if len(columns) > 1 else columns[0]
-    return jnp.minimum(x.astype(dtype), below_one(dtype))
+    return open_unit(x.astype(dtype))
 
 
 def halton(n: int, d: int, *, key: jax.Array | None = None, skip: int = 0, dtype=None) -> jax.Array:
@@ -171,8 +171,10 @@ def halton(n: int, d: int, *, key: jax.Array | None = None, skip: int = 0, dtype
     Dimension $j$ is the van der Corput sequence in the $j$-th prime base $b_j$
     (2, 3, 5, …): if $i = \sum_t a_t b_j^t$, then $x_{ij} = \phi_{b_j}(i) =
     \sum_t a_t b_j^{-t-1}$ (Halton 1960; PBRT §7.4). Index 0 (the origin) comes
-    first; unscrambled points equal `scipy.stats.qmc.Halton(d, scramble=False)`
-    after `fast_forward(skip)` (same order of floating-point operations).
+    first, as $2^{-p}$ (`p` the dtype's precision: points lie in the open cube
+    $(0, 1)^d$); otherwise unscrambled points equal
+    `scipy.stats.qmc.Halton(d, scramble=False)` after `fast_forward(skip)` (same
+    order of floating-point operations).
 
     With `key`, each digit position $t$ of each dimension gets its own uniformly
     random permutation $\pi_{j,t}$ of $\{0, \dots, b_j - 1\}$, applied to every
@@ -192,7 +194,7 @@ def halton(n: int, d: int, *, key: jax.Array | None = None, skip: int = 0, dtype
     - `skip`: index of the first point (static int `>= 0`).
     - `dtype`: floating dtype of the result.
 
-    **Returns:** an array of shape `(n, d)` in $[0,1)^d$.
+    **Returns:** an array of shape `(n, d)` in $(0,1)^d$.
     """
     n = check_count(n, "n")
     d = check_count(d, "d")

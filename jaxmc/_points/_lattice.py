@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_count, check_key
-from ._common import DATA_DIR, below_one, float_dtype, x64_enabled
+from ._common import DATA_DIR, float_dtype, open_unit, x64_enabled
 
 
 @functools.cache
@@ -40,7 +40,7 @@ def _lattice(key, n, d, dtype):
     if key is not None:
         x = x + jax.random.uniform(key, (d,), dtype=acc)[None, :]
         x = jnp.where(x >= 1, x - 1, x)
-    return jnp.minimum(x.astype(dtype), below_one(dtype))
+    return open_unit(x.astype(dtype))
 
 
 def lattice(n: int, d: int, *, key: jax.Array | None = None, dtype=None) -> jax.Array:
@@ -57,6 +57,10 @@ def lattice(n: int, d: int, *, key: jax.Array | None = None, dtype=None) -> jax.
     modulo 1, $x_i = \{ i z / n + \Delta \}$ (Cranley & Patterson 1976): each point
     is uniform on $[0,1)^d$ and the lattice structure is kept.
 
+    Points lie in the open cube $(0, 1)^d$: a coordinate 0 (the first point of
+    an unshifted lattice) is returned as $2^{-p}$, and one that rounds up to 1
+    in the output dtype as $1 - 2^{-p}$ ($p$ the dtype's precision).
+
     **Arguments:**
 
     - `n`: number of points (static int `>= 1`; a power of two up to `2**20` is best).
@@ -65,7 +69,7 @@ def lattice(n: int, d: int, *, key: jax.Array | None = None, dtype=None) -> jax.
     - `key`: a PRNG key for the random shift, or `None`.
     - `dtype`: floating dtype of the result.
 
-    **Returns:** an array of shape `(n, d)` in $[0,1)^d$.
+    **Returns:** an array of shape `(n, d)` in $(0,1)^d$.
     """
     n = check_count(n, "n")
     d = check_count(d, "d")

@@ -13,11 +13,11 @@ from jax import lax
 
 from .. import _random
 from .._checks import check_count, check_key
-from ._common import below_one, float_dtype, x64_enabled
+from ._common import float_dtype, open_unit, x64_enabled
 
 
 def uniform(key: jax.Array, n: int, d: int, *, dtype=None) -> jax.Array:
-    r"""`n` i.i.d. uniform points on $[0,1)^d$.
+    r"""`n` i.i.d. uniform points on the open cube $(0,1)^d$ (see `_random.uniform`).
 
     **Arguments:**
 
@@ -96,14 +96,14 @@ def _stratified(key, counts, dtype):
     strides = [math.prod(counts[j + 1 :]) for j in range(d)]
     cells = jnp.stack([(i // s) % c for s, c in zip(strides, counts)], axis=1)
     c = jnp.asarray(counts, dtype=dtype)
-    return jnp.minimum((cells.astype(dtype) + u) / c, below_one(dtype))
+    return open_unit((cells.astype(dtype) + u) / c)
 
 
 def stratified(key: jax.Array, counts: tuple[int, ...], *, dtype=None) -> jax.Array:
     r"""Jittered grid: one uniform point in each cell of a `counts[0] × … × counts[d-1]` grid.
 
     Cell $k = (k_1, \dots, k_d)$ is $\prod_j [k_j / c_j, (k_j+1)/c_j)$ and holds
-    the point $x_j = (k_j + U_j)/c_j$ with $U \sim \mathcal U[0,1)^d$ independent
+    the point $x_j = (k_j + U_j)/c_j$ with $U \sim \mathcal U(0,1)^d$ independent
     per cell, so with $N = \prod_j c_j$ points the equal-weight estimator
     $\frac1N\sum f(x_k)$ is the stratified estimator with one sample per stratum
     (lecture §4.2): unbiased, and never worse than plain Monte Carlo.
@@ -177,7 +177,7 @@ def _latin_hypercube(key, n, d, dtype):
     bins = _lhs_bins(key_perm, n, d)
     u = _random.uniform(key_jitter, (n, d), dtype)
     x = (bins.astype(dtype) + u) * dtype.type(1.0 / n)
-    return jnp.minimum(x, below_one(dtype))
+    return open_unit(x)
 
 
 def latin_hypercube(key: jax.Array, n: int, d: int, *, dtype=None) -> jax.Array:
@@ -185,7 +185,7 @@ def latin_hypercube(key: jax.Array, n: int, d: int, *, dtype=None) -> jax.Array:
 
     Axis $j$ gets an independent random permutation $\pi_j$ of
     $\{0, \dots, n-1\}$ and point $i$ is $x_{ij} = (\pi_j(i) + U_{ij})/n$ with
-    $U_{ij} \sim \mathcal U[0,1)$ (McKay, Beckman & Conover 1979; PBRT 3rd ed.
+    $U_{ij} \sim \mathcal U(0,1)$ (McKay, Beckman & Conover 1979; PBRT 3rd ed.
     §7.2.3). Each point is marginally uniform on $[0,1)^d$ and every 1-D
     projection is stratified into `n` equal bins, one point per bin.
 

@@ -1,4 +1,4 @@
-r"""One registry of named, randomised point sets on $[0,1)^d$.
+r"""One registry of named, randomised point sets on the open cube $(0,1)^d$.
 
 The estimators (`randomized_qmc`'s `points`, the block methods of `integrate`)
 and the renderer's per-pixel patterns look their names up here, so a name
@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import jax
 
-from ._common import float_dtype
+from ._common import float_dtype, open_unit
 from ._halton import halton
 from ._lattice import lattice
 from ._random_sets import latin_hypercube, stratified, uniform
@@ -25,7 +25,8 @@ def _uniform(key, n, d, dtype, counts):
 
 def _jax_random_uniform(key, n, d, dtype, counts):
     # i.i.d. like "uniform", but from `jax.random`'s own stream (what the renderer draws).
-    return jax.random.uniform(key, (n, d), float_dtype(dtype))
+    # `jax.random.uniform` can return 0: kept in the open cube like every other set.
+    return open_unit(jax.random.uniform(key, (n, d), float_dtype(dtype)))
 
 
 def _stratified(key, n, d, dtype, counts):
@@ -74,7 +75,7 @@ def unit_points(
     dtype=None,
     counts: tuple[int, ...] | None = None,
 ) -> jax.Array:
-    r"""`n` points of the named set on $[0,1)^d$, randomised by `key`.
+    r"""`n` points of the named set on $(0,1)^d$ (never on a face), randomised by `key`.
 
     Each randomised point is marginally uniform on $[0,1)^d$, so the
     equal-weight average of $f$ over the set is unbiased.

@@ -133,7 +133,7 @@ def sobol_block(directions: jax.Array, shift: jax.Array, index: jax.Array, log2_
     **Arguments:** `directions` (uint32 `(d, 32)`, e.g. from `sobol_scramble`),
     `shift` (uint32 `(d,)`), `index` (int scalar), `log2_size` (static int).
 
-    **Returns:** uint32 array `(2**log2_size, d)`; map to $[0,1)$ with `uint32_to_unit`.
+    **Returns:** uint32 array `(2**log2_size, d)`; map to $(0,1)$ with `uint32_to_unit`.
     """
     k_low = (log2_size + 1) // 2  # two tables of about sqrt(2^k) rows each
     size_low, rows = 1 << k_low, 1 << (log2_size - k_low)
@@ -199,7 +199,9 @@ def sobol(n: int, d: int, *, key: jax.Array | None = None, skip: int = 0, dtype=
 
     computed directly (no sequential recurrence) with uint32 XORs, so point $i$ is
     the same whatever `n`, and `sobol(n, d, skip=s)` equals rows `s…s+n-1` of a longer
-    call. Unscrambled, the first point is 0 and the points equal
+    call. Points lie in the open cube $(0, 1)^d$: a coordinate 0 (the whole first
+    point, unscrambled) is returned as $2^{-p}$, $p$ the dtype's precision.
+    Otherwise the unscrambled points equal
     `scipy.stats.qmc.Sobol(d, scramble=False)` after `fast_forward(skip)`. The
     first $2^m$ points form a $(t, m, d)$-net: every 1-D projection has exactly
     one point in each interval $[k 2^{-m}, (k+1) 2^{-m})$.
@@ -217,7 +219,7 @@ def sobol(n: int, d: int, *, key: jax.Array | None = None, skip: int = 0, dtype=
     - `skip`: index of the first point (static int `>= 0`).
     - `dtype`: floating dtype of the result (float32 keeps the top 24 bits).
 
-    **Returns:** an array of shape `(n, d)` in $[0,1)^d$.
+    **Returns:** an array of shape `(n, d)` in $(0,1)^d$.
 
     !!! Example
 

@@ -81,7 +81,7 @@ class AbstractProposal(eqx.Module):
 
 
 class AbstractUnitMap(AbstractProposal):
-    r"""A proposal that is a map of the unit cube: $x = T(u)$, $u \sim U[0,1)^d$.
+    r"""A proposal that is a map of the unit cube: $x = T(u)$, $u \sim U(0,1)^d$.
 
     Subclasses define `map(u) -> (x, log_pdf(x))` on a batch `u` of shape
     `(m, d)`; $\log p(x) = -\log|\det \partial T(u)|$ comes out of the same
@@ -90,7 +90,7 @@ class AbstractUnitMap(AbstractProposal):
 
     @abc.abstractmethod
     def map(self, u: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """`u` `(m, d)` in $[0,1)^d$ to `x` `(m, d)` and `log_pdf(x)` `(m,)`."""
+        """`u` `(m, d)` in $(0,1)^d$ to `x` `(m, d)` in the open box and `log_pdf(x)` `(m,)`."""
 
     def sample(self, key, n):
         key = check_key(key)

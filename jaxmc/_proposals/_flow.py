@@ -315,9 +315,8 @@ class Flow(AbstractUnitMap):
         return x.reshape((-1, self.dim)), batch
 
     def _to_box(self, z: jax.Array) -> jax.Array:
-        lo, hi = jnp.atleast_1d(self.lo), jnp.atleast_1d(self.hi)
-        x = to_box(z, lo, hi)
-        return jnp.where(x < lo, lo, jnp.where(x > hi, hi, x))
+        # Into the open box, with the affine map's full gradient (also where z rounded to 0 or 1).
+        return to_box(z, jnp.atleast_1d(self.lo), jnp.atleast_1d(self.hi))
 
     def _event(self, x: jax.Array, batch: tuple[int, ...]) -> jax.Array:
         return x.reshape(batch + jnp.shape(self.lo))
@@ -329,7 +328,7 @@ class Flow(AbstractUnitMap):
         """The flow's map from the unit cube to the box: `u -> (x, log_pdf(x))`.
 
         `u` has the shape of a point (`(d,)`, or a scalar for scalar bounds) or
-        a batch of them, in $[0, 1]$.
+        a batch of them, in $[0, 1]$; `x` lies in the open box (never on a face).
         """
         u, batch = self._as_points(u)
         z, log_det = jax.vmap(self._forward_unit)(u)

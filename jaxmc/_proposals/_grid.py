@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._box import log_volume, to_box
+from .._box import affine_to_box, log_volume, to_box
 from .._checks import check_bounds, check_count, is_concrete
 from ._base import AbstractUnitMap, _as_matrix, _sum_last
 
@@ -18,10 +18,11 @@ class Grid(AbstractUnitMap):
     every bin carries probability $1/N$, so the density is
     $$p(x) = \prod_j \frac{1}{N\,\Delta_{j,i_j(x)}}$$
     where $\Delta_{ji}$ is the width of the bin of $x_j$. Sampling maps
-    $u \in [0,1)^d$ through the piecewise-linear map $x_j = e_{ji} + \Delta_{ji}(Nu_j - i)$,
-    $i = \lfloor N u_j\rfloor$, so $x$ is differentiable in the widths. The widths
-    are the softmax of unconstrained `logits` `(d, N)` (in units of the box width),
-    so `fit` can optimise them; `refine` applies the classic VEGAS rule instead.
+    $u \in (0,1)^d$ through the piecewise-linear map $x_j = e_{ji} + \Delta_{ji}(Nu_j - i)$,
+    $i = \lfloor N u_j\rfloor$, into the open box (never onto a face), so $x$ is
+    differentiable in the widths. The widths are the softmax of unconstrained
+    `logits` `(d, N)` (in units of the box width), so `fit` can optimise them;
+    `refine` applies the classic VEGAS rule instead.
 
     The VEGAS rule (`refine`, or `jaxmc.fit.adapt`) is the reliable way to
     adapt a grid. A gradient fit works with a first-order optimiser on fresh
@@ -80,10 +81,10 @@ class Grid(AbstractUnitMap):
         _, e = self._unit_edges()
         lo = jnp.reshape(self.lo, (self.dim, 1))
         hi = jnp.reshape(self.hi, (self.dim, 1))
-        return to_box(e, lo, hi)
+        return affine_to_box(e, lo, hi)
 
     def map(self, u: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """The VEGAS map: `u` `(m, d)` in $[0,1)^d$ to `x` `(m, d)` and `log_pdf(x)`."""
+        """The VEGAS map: `u` `(m, d)` in $(0,1)^d$ to `x` `(m, d)` (open box) and `log_pdf(x)`."""
         x, log_p, _ = self.map_with_bins(u)
         return x, log_p
 
@@ -110,7 +111,7 @@ class Grid(AbstractUnitMap):
         gather = lambda t: t.at[flat].get(mode="promise_in_bounds")
         wi = gather(width)
         lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
-        x = jnp.clip(to_box(gather(left) + wi * frac, lo, hi), lo, hi)
+        x = to_box(gather(left) + wi * frac, lo, hi)  # never on a face, even if rounded there
         log_p = -_sum_last(gather(log_w)) - log_volume(self.lo, self.hi)
         return x, log_p, i
 

@@ -27,9 +27,9 @@ import jax
 import jax.numpy as jnp
 
 from .. import _random
-from .._box import as_vectors, to_box
+from .._box import affine_to_box, as_vectors, to_box
 from .._checks import check_bounds, check_count, check_key
-from ..stats import slot_of_sample
+from .._stats import slot_of_sample
 from ._base import AbstractProposal, _as_matrix, _from_matrix
 
 
@@ -113,7 +113,7 @@ class Partition(AbstractProposal):
         return jax.nn.log_softmax(jnp.where(self.is_leaf(), self.logits, -jnp.inf))
 
     def unit_to_box(self, u: jax.Array) -> jax.Array:
-        """Points of the unit cube `(n, d)` mapped onto the box."""
+        """Points of the unit cube `(n, d)` mapped into the open box (samples)."""
         return to_box(u, *as_vectors(self.lo, self.hi))
 
     def in_cells(self, node: jax.Array, r: jax.Array) -> jax.Array:
@@ -191,7 +191,8 @@ class Partition(AbstractProposal):
         plotting).
         """
         dtype = self.lo.dtype
-        lower = self.unit_to_box(jnp.ldexp(self.corner.astype(dtype), -self.level))
-        upper = self.unit_to_box(jnp.ldexp((self.corner + 1).astype(dtype), -self.level))
+        lo, hi = as_vectors(self.lo, self.hi)
+        lower = affine_to_box(jnp.ldexp(self.corner.astype(dtype), -self.level), lo, hi)
+        upper = affine_to_box(jnp.ldexp((self.corner + 1).astype(dtype), -self.level), lo, hi)
         return lower, upper, jnp.exp(self.log_mass()), self.is_leaf()
 

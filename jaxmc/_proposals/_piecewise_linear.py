@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._box import clip_to_open_box
 from .._checks import check_bounds, check_count
 from ._base import AbstractUnitMap, _as_matrix
 
@@ -140,7 +141,7 @@ class PiecewiseLinear(AbstractUnitMap):
         return jnp.sum(jnp.log(q) - log_z, axis=-1) - jnp.sum(jnp.log(self.hi - self.lo))
 
     def map(self, u: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """The inverse-CDF map: `u` `(m, d)` in $[0,1)^d$ to `x` `(m, d)` and `log_pdf(x)`."""
+        """The inverse-CDF map: `u` `(m, d)` in $(0,1)^d$ to `x` `(m, d)` (open box), `log_pdf(x)`."""
         h, cum = self._heights()
         target = u * cum[:, -1]
         k = jnp.sum(target[..., None] >= cum[:, 1:-1], axis=-1)
@@ -150,7 +151,7 @@ class PiecewiseLinear(AbstractUnitMap):
         den = h0 + jnp.sqrt(disc)
         s = jnp.clip(2 * r / jnp.where(den > 0, den, 1.0), 0.0, 1.0)
         lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
-        x = jnp.clip(lo + (hi - lo) * (k + s) / self.bins, lo, hi)
+        x = clip_to_open_box(lo + (hi - lo) * (k + s) / self.bins, lo, hi)
         return x, self._log_axis_factor(h, cum, k, s)
 
     def log_pdf(self, x):

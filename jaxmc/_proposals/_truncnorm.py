@@ -6,6 +6,8 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.special import log_ndtr, ndtr, ndtri
 
+from .._box import clip_to_open_box
+
 
 def log_ndtr_diff(a: jax.Array, b: jax.Array) -> jax.Array:
     r"""$\log(\Phi(b) - \Phi(a))$ for $a < b$, accurate in both tails.
@@ -29,6 +31,7 @@ def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi) -> jax
     $a = (lo-\mu)/\sigma$, $b = (hi-\mu)/\sigma$, computed on the side of the
     mean where the CDF values are not close to 1 (so both tails keep their
     precision). Differentiable in $\mu$, $\sigma$: the reparameterised sample.
+    The result lies strictly inside $(lo, hi)$, never on a face.
     """
     a = (lo - mu) / sigma
     b = (hi - mu) / sigma
@@ -48,5 +51,5 @@ def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi) -> jax
     z = jnp.where(b2 < -30.0, b2 - t, z)
     z = jnp.clip(z, a2, b2)
     z = jnp.where(flip, -z, z)
-    return jnp.clip(mu + sigma * z, lo, hi)
+    return clip_to_open_box(mu + sigma * z, lo, hi)
 

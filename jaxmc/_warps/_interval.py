@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
+from .._box import clip_to_open_box
 from ._common import _check_concrete, _float
 
 
@@ -18,11 +19,13 @@ def box(u: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> jax.Array:
 
     The density is constant, $p(x) = 1/V$ with $V = \prod_j (hi_j - lo_j)$, so
     the CDF of each coordinate is $(x_j - lo_j)/(hi_j - lo_j)$ and its inverse
-    is the affine map above (lecture §3.1).
+    is the affine map above (lecture §3.1). Points lie in the open box: one the
+    map rounds onto a face (or `u` = 0) is moved to the nearest float inside, so
+    an integrand singular on a face stays finite.
 
     **Arguments:**
 
-    - `u`: shape `(..., k)`, points of $[0,1)^k$.
+    - `u`: shape `(..., k)`, points of $(0,1)^k$.
     - `lo`, `hi`: scalars or shape `(k,)` (or broadcastable to `u`), `lo < hi`.
 
     **Returns:** points of shape `(..., k)`.
@@ -33,7 +36,7 @@ def box(u: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> jax.Array:
     lo, hi = _float(lo), _float(hi)
     _check_concrete(lambda a, b: a < b, "`lo` must be < `hi`, got lo={}, hi={}.", lo, hi)
     u, lo, hi = jnp.broadcast_arrays(u, lo, hi)
-    return lo + u * (hi - lo)
+    return clip_to_open_box(lo + u * (hi - lo), lo, hi)
 
 
 def box_pdf(x: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> jax.Array:
@@ -65,10 +68,12 @@ def power(u: ArrayLike, n: ArrayLike) -> jax.Array:
 
     **Arguments:**
 
-    - `u`: uniform variate(s) in $[0, 1)$, any shape (the warp is 1-D).
+    - `u`: uniform variate(s) in $(0, 1)$, any shape (the warp is 1-D).
     - `n`: the exponent, $n > -1$; broadcasts with `u`.
 
-    **Returns:** `x` with the broadcast shape of `u` and `n`.
+    **Returns:** `x` with the broadcast shape of `u` and `n`, in the open interval
+    $(0, 1)$: a value that underflows to 0 (large $1/(n+1)$) or rounds to 1 is
+    moved to the nearest float inside.
     """
     u, n = _float(u), _float(n)
     _check_concrete(lambda m: m > -1, "`n` must be > -1 (so that x^n is integrable), got {}.", n)
@@ -76,7 +81,8 @@ def power(u: ArrayLike, n: ArrayLike) -> jax.Array:
     safe_u = jnp.where(positive, u, 1.0)
     # exp(log(u)/(n+1)) rather than u ** (1/(n+1)): same value, and the gradient
     # in `n` stays finite (0) at u = 0 instead of 0 * inf.
-    return jnp.where(positive, jnp.exp(jnp.log(safe_u) / (n + 1.0)), 0.0)
+    x = jnp.where(positive, jnp.exp(jnp.log(safe_u) / (n + 1.0)), 0.0)
+    return clip_to_open_box(x, 0.0, 1.0)
 
 
 def power_pdf(x: ArrayLike, n: ArrayLike) -> jax.Array:
@@ -109,12 +115,15 @@ def exponential(u: ArrayLike, a: ArrayLike) -> jax.Array:
 
     **Arguments:**
 
-    - `u`: uniform variate(s) in $[0, 1)$, any shape.
+    - `u`: uniform variate(s) in $(0, 1)$, any shape.
     - `a`: the rate, $a > 0$; broadcasts with `u`.
+
+    **Returns:** `x > 0` (a value that rounds to 0 is moved to the smallest
+    positive normal float).
     """
     u, a = _float(u), _float(a)
     _check_concrete(lambda r: r > 0, "`a` must be > 0, got {}.", a)
-    return -jnp.log1p(-u) / a
+    return clip_to_open_box(-jnp.log1p(-u) / a, 0.0, jnp.inf)
 
 
 def exponential_pdf(x: ArrayLike, a: ArrayLike) -> jax.Array:

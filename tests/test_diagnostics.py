@@ -1,0 +1,152 @@
+"""Diagnostics on every estimate: ess, non-zero count, Pareto tail, rounding floors, warnings."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+import jaxmc
+from jaxmc import stats
+from jaxmc._diagnostics import TAIL, merge_tails, pareto_k, tail_of
+
+
+@pytest.mark.parametrize("k", [-0.3, 0.3, 0.7, 1.0])
+def test_pareto_k_recovers_the_generalised_pareto_shape(k):
+    # k-hat from the largest TAIL of 20,000 values has sd ~0.1; over 20 samples the mean's
+    # is ~0.025, and the prior (10 observations at 1/2) shifts it by at most 0.07 here.
+    rng = np.random.default_rng(7)
+    fits = [
+        float(pareto_k(tail_of(jnp.asarray(sps.genpareto.rvs(k, size=20_000, random_state=rng),
+                                           jnp.float32))))
+        for _ in range(20)
+    ]
+    assert abs(np.mean(fits) - k) < 0.2
+    assert abs(np.mean(fits) - (k + 0.07 * (0.5 - k))) < 0.1
+
+
+def test_pareto_k_separates_finite_from_infinite_variance():
+    keys = jax.random.split(jax.random.key(1), 50)
+
+    def fits(power):
+        def one(key):
+            return pareto_k(tail_of(jax.random.uniform(key, (2**16,), minval=1e-12) ** -power))
+
+        return np.asarray(jax.vmap(one)(keys))
+
+    # u^-a has tail index 1/a: k = a. Measured over 200 keys: k-hat 0.35 +- 0.11 (a = 1/3,
+    # none above 0.7), 0.86 +- 0.15 (a = 0.9, 87% above 0.7).
+    finite, infinite = fits(1 / 3), fits(0.9)
+    assert abs(finite.mean() - 1 / 3) < 0.1 and np.mean(finite > 0.7) <= 0.04
+    assert abs(infinite.mean() - 0.9) < 0.15 and np.mean(infinite > 0.7) >= 0.6
+    assert float(pareto_k(tail_of(jnp.cos(jnp.linspace(0, 1, 4096))))) < 0  # bounded
+    assert np.isneginf(float(pareto_k(tail_of(jnp.ones(1000)))))  # a flat top: no tail
+    assert np.isnan(float(pareto_k(tail_of(jnp.arange(10.0)))))  # too few values to fit
+
+
+def test_tails_merge_exactly():
+    y = jax.random.normal(jax.random.key(2), (3000, 2))
+    whole = tail_of(y)
+    merged = merge_tails(tail_of(y[:1000]), tail_of(y[1000:]))
+    for a, b in zip(whole, merged):
+        np.testing.assert_allclose(a, b, rtol=1e-5)
+    assert whole.top.shape == (2, TAIL + 1)
+
+
+def test_ess_and_nonzero_count():
+    est = jaxmc.uniform(jax.random.key(0), lambda x: 2.0, 0.0, 1.0, 1000)
+    assert float(est.ess) == pytest.approx(1000, rel=1e-5)
+    assert int(est.n_nonzero) == 1000
+    with pytest.warns(jaxmc.ReliabilityWarning, match="non-zero"):
+        est = jaxmc.uniform(jax.random.key(0), lambda x: jnp.where(x < 0.003, 1.0, 0.0), 0.0, 1.0,
+                            2000)  # ~6 hits
+    assert 0 < int(est.n_nonzero) < 10
+    assert float(est.ess) == pytest.approx(int(est.n_nonzero), rel=1e-5)
+
+
+def test_array_valued_diagnostics_are_per_component():
+    est = jaxmc.uniform(jax.random.key(0), lambda x: jnp.stack([x, 1.0 + 0 * x]), 0.0, 1.0, 4096)
+    assert est.ess.shape == est.pareto_k.shape == est.n_nonzero.shape == (2,)
+    assert float(est.ess[1]) == pytest.approx(4096, rel=1e-5)
+    assert 0.7 * 4096 < float(est.ess[0]) < 0.8 * 4096  # (E x)^2 / E x^2 = 3/4
+
+
+@pytest.mark.parametrize("method", ["plain", "qmc", "adaptive", "auto"])
+def test_integrate_warns_on_a_missed_peak(method):
+    def peak(x):
+        return jnp.exp(-jnp.sum((x - 0.3) ** 2) / (2 * 1e-4**2))
+
+    with pytest.warns(jaxmc.ReliabilityWarning):
+        est = jaxmc.integrate(jax.random.key(3), peak, [0.0] * 3, [1.0] * 3, n=2**15, method=method)
+    assert bool(stats.unreliable(est))
+
+
+@pytest.mark.parametrize("method", ["plain", "qmc"])
+def test_integrate_flags_an_infinite_variance_tail(method):
+    # x^-0.9 on (0, 1]: integral 10, tail index 1/0.9 (k = 0.9): the variance is infinite.
+    # (A VEGAS grid confines the tail to its first bin, where k-hat sees it on some keys only.)
+    with pytest.warns(jaxmc.ReliabilityWarning, match="Pareto"):
+        est = jaxmc.integrate(jax.random.key(4), lambda x: x[0] ** -0.9, [0.0], [1.0], n=2**18,
+                              method=method)
+    assert float(est.pareto_k) > 0.7
+
+
+def test_no_false_alarms_on_benign_integrands():
+    # pytest turns warnings into errors: none may be raised here.
+    key = jax.random.key(5)
+    genz = lambda x: jnp.exp(-jnp.sum(25.0 * (x - 0.5) ** 2))  # noqa: E731
+    for f, d, methods in [(genz, 3, ["plain", "qmc", "adaptive"]),
+                          (lambda x: x[0] ** (-1 / 3), 1, ["plain", "qmc"])]:
+        for method in methods:
+            est = jaxmc.integrate(key, f, [0.0] * d, [1.0] * d, n=2**15, method=method)
+            assert not bool(stats.unreliable(est)), (method, stats.reliability_reasons(est))
+        assert not bool(stats.unreliable(jaxmc.uniform(key, f, [0.0] * d, [1.0] * d, 4096)))
+        assert not bool(stats.unreliable(jaxmc.randomized_qmc(key, f, [0.0] * d, [1.0] * d, 1024)))
+        assert not bool(stats.unreliable(jaxmc.stratified(key, f, [0.0] * d, [1.0] * d, (8,) * d)))
+    jaxmc.fit.adapt(key, genz, jaxmc.proposals.Grid([0.0] * 3, [1.0] * 3), iterations=5,
+                    n_per_iteration=2**12)
+
+
+def test_unreliable_under_jit_and_vmap():
+    def run(key):
+        return jaxmc.uniform(key, lambda x: jnp.where(x < 1e-3, 1.0, 0.0), 0.0, 1.0, 2000)
+
+    keys = jax.random.split(jax.random.key(6), 8)
+    flags = jax.jit(jax.vmap(lambda k: stats.unreliable(run(k))))(keys)
+    assert flags.shape == (8,) and bool(jnp.all(flags))
+
+
+def test_float32_error_bar_is_floored_at_the_rounding_error():
+    # The issue's case: a mean of ~1000.67 in float32 claimed +-1.1e-7 (an ulp is 6e-5).
+    # (The tests run with x64 on: float32 bounds make a float32 run.)
+    lo, hi = jnp.zeros(2, jnp.float32), jnp.ones(2, jnp.float32)
+    est = jaxmc.integrate(jax.random.key(7), lambda x: jnp.sum(x**2) + 1000.0, lo, hi, n=2**24,
+                          method="plain")
+    assert est.mean.dtype == jnp.float32
+    assert float(est.stderr) >= stats.rounding_floor(jnp.float32) * 1000.0
+    assert abs(float(est.mean) - (1000 + 2 / 3)) <= 5 * float(est.stderr)
+
+
+@pytest.mark.parametrize("method", ["plain", "qmc"])
+def test_float32_prod_cos_is_within_5_reported_sigma(method):
+    truth = np.sin(1.0) ** 4
+    lo, hi = jnp.zeros(4, jnp.float32), jnp.ones(4, jnp.float32)
+    est = jaxmc.integrate(jax.random.key(8), lambda x: jnp.prod(jnp.cos(x)), lo, hi, n=2**24,
+                          method=method)
+    assert est.mean.dtype == jnp.float32
+    assert abs(float(est.mean) - truth) <= 5 * float(est.stderr)
+    assert float(est.stderr) >= stats.rounding_floor(jnp.float32) * 0.5 * truth
+
+
+def test_qmc_error_bar_on_an_unbounded_integrand_covers():
+    # x^-1/3: finite variance, but 5-9 replica means of a scrambled net are so skewed that
+    # their spread covered the truth at 2 sigma in only 30 of 40 keys (down to -5.8 sigma).
+    f = lambda x: x[0] ** (-1 / 3)  # noqa: E731
+    run = jax.jit(jax.vmap(lambda k: jaxmc.integrate(k, f, jnp.zeros(1), jnp.ones(1), n=2**18,
+                                                     method="qmc")))
+    est = run(jax.random.split(jax.random.key(9), 40))
+    z = (est.mean - 1.5) / est.stderr
+    assert np.mean(np.abs(z) <= 2) >= 0.9
+    qmc = jaxmc.randomized_qmc(jax.random.key(9), f, [0.0], [1.0], 2**12, replicas=8)
+    plain = jaxmc.uniform(jax.random.key(9), f, [0.0], [1.0], 2**15)
+    assert float(qmc.variance) >= 0.5 * float(plain.variance)  # the i.i.d. bound applies
