@@ -113,6 +113,7 @@ def _largest(a: jax.Array, axis: int) -> jax.Array:
     return jax.lax.top_k(a, TAIL + 1)[0]
 
 
+@jax.jit
 def tail_of(c: jax.Array, valid: jax.Array | None = None) -> Tail:
     """The `Tail` of contributions `c` `(n, ...)` (rows where `valid`)."""
     c = jnp.asarray(c)
@@ -137,6 +138,7 @@ def empty_tail(shape: tuple[int, ...], dtype) -> Tail:
     return Tail(jnp.zeros((), dtype), zero, zero, zero, jnp.zeros(shape + (TAIL + 1,), dtype))
 
 
+@jax.jit
 def merge_tails(a: Tail, b: Tail) -> Tail:
     """Exact merge: sums add, and the largest values of the union are kept."""
     return Tail(
@@ -165,6 +167,7 @@ def gather_tails(t: Tail, axes: tuple[str, ...]) -> Tail:
     )
 
 
+@jax.jit
 def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
     r"""`variance` of the mean, at least $(\mathrm{rounding\_floor}\cdot\frac1N\sum|c_i|)^2$."""
     floor = rounding_floor(t.abs_sum.dtype) * t.abs_sum / jnp.maximum(t.count, 1)
@@ -176,6 +179,7 @@ def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
 STRUCTURED_MAX_PARETO_K = 0.2
 
 
+@jax.jit
 def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> jax.Array:
     r"""A structured variance estimate (replicas of a net, pairs in strata), made safe for
     power-law tails.
@@ -196,6 +200,7 @@ def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> jax.Array
     return jnp.where(heavy, jnp.maximum(variance, iid), variance)
 
 
+@jax.jit
 def effective_sample_size(t: Tail) -> jax.Array:
     r"""$(\sum|c_i|)^2 / \sum c_i^2$ (0 when every contribution is zero)."""
     return jnp.where(t.sq_sum > 0, t.abs_sum**2 / jnp.where(t.sq_sum > 0, t.sq_sum, 1), 0.0)
@@ -207,6 +212,7 @@ _PRIOR_K = 10.0
 _GRID = 30 + int(np.sqrt(TAIL))
 
 
+@jax.jit
 def pareto_k(t: Tail) -> jax.Array:
     r"""Generalised Pareto shape $\hat k$ of the upper tail of $|c_i|$ (per component).
 
