@@ -44,19 +44,23 @@ FLOW_STEPS_PER_BATCH = 8  # Adam steps on each evaluated batch (reweighted, forw
 MAX_Z = 5.0
 TIMED_REPEATS = 7  # timed runs after the compiling one; times are their median
 FLOW_TIMED_REPEATS = 2
+# `--quick` runs are mostly compiles (~3 s per Grid+ or Partition run, ~10 s per GM, ~15 s per
+# Flow plus ~10 s of training per run): they take three problems, fit GM to two and no flow.
+QUICK_GM = ("two Gaussians (1/3, 2/3)", "i-flow annulus d=2")
 
 
 def _problems(quick: bool) -> list[Problem]:
-    dims = (4,) if quick else (2, 4, 8, 16)
+    if quick:
+        return [
+            problems.vegas_narrow_gaussian(),
+            problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
+            problems.iflow_annulus(),
+        ]
+    dims = (2, 4, 8, 16)
     return [
         problems.vegas_narrow_gaussian(),
         problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
-        *(
-            []
-            if quick
-            else [problems.diagonal_gaussians("three Gaussians (0.23, 0.39, 0.74)", 6,
-                                              [0.23, 0.39, 0.74])]
-        ),
+        problems.diagonal_gaussians("three Gaussians (0.23, 0.39, 0.74)", 6, [0.23, 0.39, 0.74]),
         problems.vegas_ridge(),
         *(problems.iflow_gaussian(d) for d in dims),
         *(problems.iflow_camel(d) for d in dims),
@@ -279,7 +283,7 @@ def run(ctx: Context) -> Result:
     n = 5_000 if quick else 20_000
     # Timed repeats (median): the Flow runner takes a minute a run, the others well under one.
     repeats = 1 if quick else TIMED_REPEATS
-    flow_repeats = 1 if quick else FLOW_TIMED_REPEATS
+    flow_repeats = FLOW_TIMED_REPEATS  # full runs only
     header = [
         "integrand",
         "d",
@@ -305,8 +309,10 @@ def run(ctx: Context) -> Result:
         results["jaxmc Grid+"] = _run_grid(problem, iterations, n, repeats)
         if problem.d <= PARTITION_MAX_D:
             results["jaxmc Partition"] = _run_partition(problem, iterations, n, repeats)
-        if not problem.separable or problem.d >= 8:
+        fitted = not problem.separable or problem.d >= 8
+        if fitted and (not quick or problem.name in QUICK_GM):
             results["jaxmc GM"] = _run_gm(problem, iterations, n, repeats)
+        if fitted and not quick:
             results.update(_run_flow(problem, iterations, n, flow_repeats))
         t_ref = _time_to_tol(results["vegas"]) if "vegas" in results else None
         # A run whose estimate is off by > 5 stderr (e.g. a density locked onto one of
@@ -351,8 +357,9 @@ def run(ctx: Context) -> Result:
         "`rel_sd` is per sample, from the last round; `t_1e-3` and `err@T` are projections from "
         "the measured steady-state times (T = vegas's `t_1e-3`); `var ratio` = (vegas rel_sd / "
         "method rel_sd)^2, i.e. variance per evaluation relative to vegas (> 1 is better than "
-        f"vegas). Times are medians of {repeats} timed runs ({flow_repeats} for the flows; "
-        "jaxmc's after a compiling one); wall-clock times on a shared 2-core machine are noisy. "
+        f"vegas). Times are medians of {repeats} timed runs "
+        f"({'' if quick else f'{flow_repeats} for the flows; '}jaxmc's after a compiling one); "
+        "wall-clock times on a shared 2-core machine are noisy. "
         "`biased`: |z| > 5 (or a zero variance), so the run's variance means nothing: the "
         "density missed part of the integrand. `Flow+QMC`: a `Flow` trained by Adam on the "
         f"forward KL with 90% of the budget ({FLOW_STEPS_PER_BATCH} steps per evaluated batch), "
@@ -360,6 +367,11 @@ def run(ctx: Context) -> Result:
         "of vegas's stratification); `Flow (iid)`: the same flow sampled i.i.d.; their `t_1e-3` "
         "uses the run's time per evaluation, training included."
     )
+    if quick:
+        notes += (
+            f" Quick run: `GM` only on {' and '.join(QUICK_GM)}, no flows (the full run fits "
+            "both to every problem that is not separable or has d >= 8)."
+        )
     if vegas is None:
         notes += " vegas was not installed: no comparison."
     md = markdown_table(header, rows) + notes

@@ -14,6 +14,7 @@ from . import (
     testing as testing,
     warps as warps,
 )
+from ._expectation import Expectation as Expectation, expectation as expectation
 from .estimators import (
     antithetic as antithetic,
     control_variate as control_variate,
@@ -38,12 +39,14 @@ __version__ = _metadata.version("jaxmc")
 __all__ = [
     "Combined",
     "Estimate",
+    "Expectation",
     "ReliabilityWarning",
     "antithetic",
     "combine",
     "control_variate",
     "distributions",
     "estimators",
+    "expectation",
     "fit",
     "importance",
     "integrate",

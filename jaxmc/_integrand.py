@@ -3,7 +3,9 @@
 Every estimator, adaptation rule and fit goes through `evaluate` (one point at
 a time by `vmap`, or the whole batch with `batched=True`) and `ratio` (the
 per-sample value $f(x)/p(x)$, non-finite values counted and zeroed), so the
-conventions for shapes, dtypes and non-finite values live here alone.
+conventions for shapes, dtypes and non-finite values live here alone. An
+integrand given `args` is bound to them by `bind` (`WithArgs`), so that the
+parameters reach every compiled function as traced arguments.
 """
 
 from __future__ import annotations
@@ -11,10 +13,53 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._checks import as_real_array, check_callable, check_flag
+
+
+class WithArgs(eqx.Module):
+    """`f` bound to its parameters: `WithArgs(f, args)(x)` is `f(x, args)`.
+
+    A pytree whose leaves are `args`' arrays (and those of `f` itself, if it is
+    a module): `equinox.filter_jit` traces them and keys its cache on the rest,
+    so the same `f` with new `args` of the same shapes and dtypes reuses the
+    compiled code, where a new closure over the values would be traced and
+    compiled anew.
+    """
+
+    f: Callable
+    args: Any
+
+    def __call__(self, x: jax.Array) -> Any:
+        return self.f(x, self.args)
+
+
+def _traced(leaf: Any) -> Any:
+    """Python floats (and complex numbers) and NumPy values as JAX arrays, so they are traced.
+
+    Python ints and bools stay as they are: static, like `equinox.filter_jit`'s,
+    so they may set shapes or branch in Python (each new value compiles anew).
+    """
+    if isinstance(leaf, (bool, int)):
+        return leaf
+    if isinstance(leaf, (float, complex, np.ndarray, np.generic)):
+        return jnp.asarray(leaf)
+    return leaf
+
+
+def bind(f: Callable, args: Any, name: str = "f") -> Callable:
+    """`f` itself when `args` is None, else `WithArgs(f, args)` with `args`' numbers as arrays.
+
+    `f` must then accept two positional arguments, `(x, args)`.
+    """
+    if args is None:
+        return f
+    check_callable(f, name, arguments=2)
+    return WithArgs(f, jax.tree.map(_traced, args))
 
 
 def evaluate(f: Callable, x: jax.Array, batched: bool, name: str = "f") -> jax.Array:
@@ -35,9 +80,10 @@ def evaluate(f: Callable, x: jax.Array, batched: bool, name: str = "f") -> jax.A
         except Exception as error:  # the user's own error: say how jaxmc called `f`
             if hasattr(error, "add_note"):  # Python >= 3.11
                 where = "a batch of points" if batched else "one point"
+                how = f" as {name}(x, args)" if isinstance(f, WithArgs) else ""
                 scalar = " (scalar bounds `lo`, `hi` give scalar points)" if x.ndim == 1 else ""
-                error.add_note(f"(raised by the integrand `{name}`, which jaxmc calls on {where} x "
-                               f"of shape {point} and dtype {x.dtype}{scalar})")
+                error.add_note(f"(raised by the integrand `{name}`, which jaxmc calls{how} on {where} "
+                               f"x of shape {point} and dtype {x.dtype}{scalar})")
             raise
 
     y = _values(call(x), name) if batched else jax.vmap(lambda xi: _values(call(xi), name))(x)

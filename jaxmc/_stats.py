@@ -43,6 +43,7 @@ from ._diagnostics import (
     tail_of,
     unreliable as unreliable,
 )
+from ._format import estimate_repr, estimate_str, iteration_tables
 
 
 class Estimate(eqx.Module):
@@ -67,6 +68,9 @@ class Estimate(eqx.Module):
     - `pareto_k`: the generalised Pareto shape $\hat k$ of the upper tail of
       $|c_i|$ (as in Pareto-smoothed importance sampling); the variance is
       finite only for $k < 1/2$, and above 0.7 the error bar cannot be trusted.
+
+    `print(est)` shows the compact notation of vegas and gvar, `0.9977(42)` for
+    0.99771 ± 0.00423 (element by element for an array); `repr(est)` the numbers.
     """
 
     mean: jax.Array
@@ -100,6 +104,13 @@ class Estimate(eqx.Module):
             raise ValueError(f"`delta` must be in (0, 1], got {delta}.")
         return jnp.sqrt(self.variance / delta)
 
+    def __repr__(self) -> str:
+        return estimate_repr(self, Estimate)
+
+    def __str__(self) -> str:
+        """The mean and its standard error in the compact notation, e.g. `0.9977(42)`."""
+        return estimate_str(self)
+
 
 class Combined(Estimate):
     r"""Inverse-variance weighted combination of independent estimates.
@@ -116,6 +127,18 @@ class Combined(Estimate):
     chi2_dof: jax.Array
     q: jax.Array
     parts: Estimate
+
+    def summary(self) -> str:
+        """The parts (iterations) as a text table, like vegas's `summary()`.
+
+        One row per part: `itn`, its estimate, the weighted average of parts 1
+        to `itn` (`combine`: the last row's is this one) and that average's
+        `chi2/dof` and `Q`, numbers in the compact notation (`0.9977(42)`). An
+        array-valued estimate gets one table per component, headed by its
+        index, with the component's own `chi2/dof` and `Q` (`chi2_dof` here
+        sums over components). Outside `jit` only.
+        """
+        return iteration_tables(self, combine)
 
 
 def check_level(level: float) -> None:
@@ -208,8 +231,8 @@ def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
     # Diagnostics: effective sizes and non-zero counts add up; the tail shape is the
     # weight-averaged one of the parts that carry weight.
     # (Hand-built parts may carry the scalar defaults: broadcast them like the variances.)
-    ess, n_nonzero, part_k = (jnp.broadcast_to(a, var.shape) for a in (parts.ess, parts.n_nonzero,
-                                                                      parts.pareto_k))
+    ess, n_nonzero, part_k = (jnp.broadcast_to(_expand(a, var), var.shape)
+                              for a in (parts.ess, parts.n_nonzero, parts.pareto_k))
     share = w / safe_wsum
     weighted_k = jnp.sum(jnp.where(share > 0, share * part_k, 0.0), axis=0)
     known = jnp.all(n_nonzero >= 0, axis=0)

@@ -19,7 +19,13 @@ and their array fields are the parameters `fit` optimises.
 The contract every consumer relies on is `AbstractProposal` (`sample`,
 `log_pdf`, `pdf`, `weighted_draw`); `AbstractUnitMap` is the base of the
 densities that map the unit cube with a Jacobian (`Grid`, `PiecewiseLinear`,
-`Flow`). Saving a fitted density is `eqx.tree_serialise_leaves`.
+`Flow`).
+
+A fitted density is data: `eqx.tree_serialise_leaves(path, proposal)` saves
+its arrays and `eqx.tree_deserialise_leaves(path, like)` restores them into
+`like`, a freshly built proposal of the same structure (same type, box shape
+and sizes, e.g. `Grid(lo, hi, bins)`); the restored density draws the same
+samples with the same pdf for the same key.
 """
 
 from ._proposals._base import (

@@ -1,10 +1,13 @@
 """Shared test pieces: running an estimator over many keys, the statistical checks on
-the result, and test integrands with known integrals.
+the result, test integrands with known integrals, and a count of XLA compilations.
 
 Statistical checks use fixed keys, so their outcome is deterministic; the bands are
 5 standard deviations (or a p-value floor of `P_FLOOR`) so a correct estimator passes
 for essentially every choice of keys.
 """
+
+import contextlib
+import logging
 
 import equinox as eqx
 import jax
@@ -131,3 +134,25 @@ def midpoint_grid(lo, hi, m):
     axes = [lo[j] + (hi[j] - lo[j]) * (np.arange(m) + 0.5) / m for j in range(2)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
     return jnp.asarray(pts), float(np.prod((hi - lo) / m))
+
+
+@contextlib.contextmanager
+def compilations():
+    """The list of XLA compilations JAX logs inside the block."""
+    messages = []
+
+    class Record(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Compiling "):
+                messages.append(record.getMessage())
+
+    handler = Record()
+    loggers = [logging.getLogger(name) for name in ("jax._src.interpreters.pxla", "jax._src.dispatch")]
+    for logger in loggers:
+        logger.addHandler(handler)
+    try:
+        with jax.log_compiles():
+            yield messages
+    finally:
+        for logger in loggers:
+            logger.removeHandler(handler)

@@ -1,6 +1,10 @@
-"""The coverage benchmark's core on two small cells, so the suite cannot rot unnoticed."""
+"""The coverage benchmark's core on two small cells, so the suite cannot rot unnoticed;
+and where the main job writes."""
 
 import json
+import shutil
+import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -49,3 +53,31 @@ def test_coverage_registered_and_not_quick():
 def test_stratified_grid_fits_the_budget(n, d):
     (c, *_) = counts = coverage._stratified_counts(n, d)
     assert len(counts) == d and 2 * c**d <= n < 2 * (c + 1) ** d
+
+
+def _git(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
+
+
+def test_main_job_leaves_the_checkout_clean(tmp_path):
+    from benchmarks import __main__ as main_job
+
+    root = Path(main_job.__file__).resolve().parents[1]
+    if shutil.which("git") is None or _git("rev-parse", cwd=root).returncode != 0:
+        pytest.skip("not a git checkout")
+    # By default the results go to an ignored folder; the reference results are tracked.
+    out = main_job.OUT.resolve() / "summary-quick.md"
+    assert _git("check-ignore", "-q", str(out), cwd=root).returncode == 0
+    reference = main_job.REFERENCE.resolve() / "summary-quick.md"
+    assert _git("ls-files", "--error-unmatch", str(reference), cwd=root).returncode == 0
+    # --out still chooses the folder (no suite matches: only the summary is written).
+    assert main_job.main(["--quick", "--only", "^$", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "summary-quick.md").read_text().startswith("# jaxmc benchmarks")
+
+
+def test_quick_settings_name_existing_problems():
+    from benchmarks import adaptive, render
+
+    names = {p.name for p in adaptive._problems(quick=True)}
+    assert set(adaptive.QUICK_GM) <= names
+    assert set(render.QUICK_COMBOS) <= set(render._combos(quick=False))

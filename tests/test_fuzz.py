@@ -25,7 +25,7 @@ KEY = jax.random.key(5)
 # jaxmc's argument errors name the argument in backticks.
 NAMED = re.compile(r"`(key|f|lo|hi|n|counts|counts\[\d\]|per_stratum|replicas|batched)`")
 BUDGET = settings(
-    max_examples=12, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck)
+    max_examples=8, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck)
 )
 
 

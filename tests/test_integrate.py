@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -110,7 +111,8 @@ def test_nonfinite_raises_or_drops():
 def test_progress_reports(capfd):
     jaxmc.integrate(jax.random.key(8), F, LO, HI, n=100_000, method="plain", chunk=2**15, progress=True)
     err = capfd.readouterr().err
-    assert "jaxmc.integrate: n=100,000" in err
+    # A tqdm bar on stderr, at 100% of the budget, closed with a newline.
+    assert "100k/100k" in err and err.endswith("\n")
 
 
 @pytest.mark.parametrize(
@@ -232,7 +234,12 @@ def test_adaptive_reaches_a_tolerance_on_a_narrow_posterior():
     allocation) stays within 5x of that, and its error bar is honest."""
     f, exact = _posterior()
     lo, hi = jnp.zeros(5), jnp.ones(5)
-    est = jaxmc.integrate(jax.random.key(3), f, lo, hi, rtol=1e-3, method="adaptive")
+    # A separable grid on a correlated 5-D peak keeps ess/n near 0.07 and k-hat near the
+    # 0.7 gate (0.5-0.77 over keys, with or without the grid's defensive share), so the
+    # tail warning may fire; the error bar itself is checked against the truth below.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jaxmc.ReliabilityWarning)
+        est = jaxmc.integrate(jax.random.key(3), f, lo, hi, rtol=1e-3, method="adaptive")
     assert float(est.stderr) <= 1e-3 * abs(float(est.mean))
     assert int(est.n) <= 1e7
     assert abs(float(est.mean) - exact) < 4 * float(est.stderr)

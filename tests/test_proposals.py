@@ -193,11 +193,12 @@ def test_grid_refine_vegas_rule(key):
     assert widths[-1] < widths[0] / 2
     # alpha = 0 flattens the weights: edges stay uniform.
     np.testing.assert_allclose(g.refine(x, w, alpha=0.0).edges, g.edges, atol=1e-12)
-    # Repeated refinement converges towards the optimal density 2x (CDF x^2).
+    # Repeated refinement converges towards the optimal density 2x (CDF x^2), up to the
+    # rule's 1% defensive share, which widens the narrowest bins a little.
     for i in range(10):
         x, p = g2.sample(jax.random.fold_in(key, i), 20_000)
         g2 = g2.refine(x, (2 * x / p) ** 2, alpha=0.5)
-    np.testing.assert_allclose(g2.edges[0], np.sqrt(np.linspace(0, 1, 9)), atol=0.03)
+    np.testing.assert_allclose(g2.edges[0], np.sqrt(np.linspace(0, 1, 9)), atol=0.04)
 
 
 def test_partition_cells_tile_the_box(key):

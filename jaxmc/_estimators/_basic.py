@@ -12,7 +12,7 @@ from .. import _random
 from .._box import to_box
 from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_key
 from .._diagnostics import warn_if_unreliable
-from .._integrand import evaluate, ratio
+from .._integrand import bind, evaluate, ratio
 from .._stats import Estimate, estimate_iid
 from ..proposals import check_proposal
 
@@ -25,6 +25,7 @@ def uniform(
     n: int,
     *,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""The basic Monte Carlo estimator over the box $[lo, hi]$ (eq. 8).
 
@@ -43,6 +44,8 @@ def uniform(
     - `n`: the number of samples (a static Python int).
     - `batched`: if True, `f` receives all points at once (`(n, d)` or `(n,)`)
       and returns `(n, ...)`.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as
+      `f(x, args)` (see `integrate`).
 
     **Returns:** an `Estimate`.
 
@@ -54,7 +57,7 @@ def uniform(
         ```
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     lo, hi = check_bounds(lo, hi, finite_volume=True)
     n = check_count(n, maximum=MAX_COUNT)
     u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
@@ -74,6 +77,7 @@ def importance(
     n: int,
     *,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""Importance sampling (eq. 10/12): $F_n = \frac1n \sum_{i=1}^n f(X_i)/p(X_i)$, $X_i \sim p$.
 
@@ -90,6 +94,7 @@ def importance(
       e.g. `jaxmc.proposals.Uniform(lo, hi)`.
     - `n`: the number of samples (a static Python int).
     - `batched`: if True, `f` receives the whole batch `x`.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as `f(x, args)`.
 
     **Returns:** an `Estimate`.
 
@@ -98,7 +103,7 @@ def importance(
     the parameters.
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     proposal = check_proposal(proposal)
     n = check_count(n, maximum=MAX_COUNT)
     x, px = proposal.sample(key, n)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from .. import _random
 from .._box import clip_to_open_box, to_box
 from .._checks import check_bounds, check_callable, check_count, check_key
-from .._integrand import evaluate, ratio
+from .._integrand import bind, evaluate, ratio
 from .._stats import Estimate, diagnosed, estimate_iid, moments, tail_of
 
 
@@ -35,6 +35,7 @@ def control_variate(
     n: int,
     *,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""The uniform estimator with a control variate $g$ of known integral $G$.
 
@@ -63,6 +64,8 @@ def control_variate(
     - `lo`, `hi`: the box.
     - `n`: number of samples (static int, at least 4: two per half).
     - `batched`: if True, `f` and `g` receive all points at once.
+    - `args`: parameters (any pytree); if given, `f` and `g` are called as
+      `f(x, args)` and `g(x, args)`.
 
     **Returns:** an `Estimate` (`n` evaluations of `f`, and of `g`).
 
@@ -73,8 +76,8 @@ def control_variate(
         ```
     """
     key = check_key(key)
-    f = check_callable(f)
-    g = check_callable(g, "g")
+    f = bind(check_callable(f), args)
+    g = bind(check_callable(g, "g"), args, "g")
     lo, hi = check_bounds(lo, hi)
     n = check_count(n, minimum=4)
     u = _random.uniform(key, (n,) + lo.shape, lo.dtype)
@@ -130,6 +133,7 @@ def antithetic(
     n: int,
     *,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""The uniform estimator with antithetic pairs $X$ and $lo + hi - X$.
 
@@ -148,11 +152,12 @@ def antithetic(
     - `lo`, `hi`: the box.
     - `n`: number of integrand evaluations (an even static int; `n/2` pairs).
     - `batched`: if True, `f` receives all `n` points at once.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as `f(x, args)`.
 
     **Returns:** an `Estimate` with `n` evaluations.
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     lo, hi = check_bounds(lo, hi)
     n = check_count(n, minimum=2)
     if n % 2:

@@ -33,6 +33,8 @@ from .._checks import (
 )
 from .._diagnostics import warn_if_unreliable
 from .._fit._vegas import strata_per_axis
+from .._integrand import bind
+from .._progress import progress_bar
 from .._stats import Estimate, ReliabilityWarning, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus
 from ..proposals import Grid
@@ -80,6 +82,7 @@ def integrate(
     mesh: Mesh | None = None,
     progress: bool = False,
     batched: bool = False,
+    args: Any = None,
 ) -> IntegrationEstimate:
     r"""Integrate `f` over the box $[lo, hi]$ to a tolerance or a budget, streaming.
 
@@ -139,15 +142,28 @@ def integrate(
       each device integrates on its own. An integrand that captures arrays
       sharded on `Explicit` mesh axes (under `jit` or `vmap` over sharded
       parameters) is run as one program, every device's blocks in it.
-    - `progress`: print the running estimate after every chunk.
+    - `progress`: show a progress bar (tqdm, on stderr) with the running
+      estimate in the compact notation (`0.9977(42)`), moved after every
+      chunk and closed where the evaluations stopped. Under `jit` the bar
+      shows the streaming part only (opened and closed by the loop itself).
     - `batched`: `f` receives the whole `(m, d)` batch.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as
+      `f(x, args)`, as in optimistix and diffrax. Floats and NumPy values are
+      traced; Python `int`s and `bool`s stay static (a new value compiles).
 
     **Returns:** an `IntegrationEstimate` (an `Estimate` with `method`, `pilot`
     and `converged`). Outside `jit`, a tolerance the budget could not meet
     warns with `jaxmc.ReliabilityWarning`.
 
-    Without tolerances the loop has a fixed trip count and is differentiable;
-    with tolerances it is a `while_loop` (forward-mode only).
+    Without tolerances the loop has a fixed trip count and is differentiable
+    (in `args` too); with tolerances it is a `while_loop` (forward-mode only).
+
+    **Compilation** is cached per integrand object `f` and sizes: a new
+    `lambda` or closure per call compiles anew (about 2 s each). For a family
+    of integrands define `f` once and pass the parameters in `args`: new
+    values of the same shapes and dtypes reuse the compiled code (for
+    `"auto"`, once each way the pilot can end). As under `jax.jit`, a global
+    that `f` reads is frozen into that code.
 
     !!! Example
 
@@ -158,7 +174,7 @@ def integrate(
         ```
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     lo, hi = check_bounds(lo, hi, finite_volume=True)
     method = check_choice(method, "method", METHODS)
     nonfinite = check_choice(nonfinite, "nonfinite", ("raise", "drop"))
@@ -195,9 +211,9 @@ def integrate(
         spent = sum(pilot.evaluations)
         rest = budget - spent
         branches = (
-            lambda: run.qmc(key, rest),
+            lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: stream on it frozen.
-            lambda: run.frozen_grid(key, rest, frozen_vegas_plus(state, block), block),
+            lambda: run.frozen_grid(key, rest, frozen_vegas_plus(state, block), block, spent),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -249,32 +265,35 @@ class _Run:
         self.rtol, self.atol = rtol, atol
         self.d = 1 if lo.ndim == 0 else lo.shape[0]
 
-    def _stream(self, key, frozen, run_plan):
-        return stream_on_mesh(
-            key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
-            mesh=self.mesh, tolerant=self.tolerant, progress=self.progress, batched=self.batched,
-        )
+    def _stream(self, key, frozen, run_plan, done=0):
+        """Stream `run_plan`, `done` evaluations (a pilot's, a training's) already spent."""
+        with progress_bar(self.progress, done + run_plan.budget, done):
+            return stream_on_mesh(
+                key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
+                mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,
+                batched=self.batched,
+            )
 
-    def block_method(self, method, key, budget):
+    def block_method(self, method, key, budget, done=0):
         run_plan = plan(method, budget, self.chunk, self.mesh.size, self.d,
                         tolerant=self.tolerant)
-        return self._stream(key, None, run_plan)
+        return self._stream(key, None, run_plan, done)
 
-    def qmc(self, key, budget):
-        return self.block_method("qmc", key, budget)
+    def qmc(self, key, budget, done=0):
+        return self.block_method("qmc", key, budget, done)
 
     def adaptive(self, key, budget, grid, rounds=None):
         """Train a VEGAS+ grid from `grid` (`_train_vegas_plus`), then stream rounds on it frozen."""
         block = _adaptive_block(budget)
         rounds = training_rounds(budget, block) if rounds is None else rounds
         key, frozen, trained = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
-        est = self.frozen_grid(key, budget - trained, frozen, block)
+        est = self.frozen_grid(key, budget - trained, frozen, block, trained)
         return dataclasses.replace(est, n=est.n + trained)
 
-    def frozen_grid(self, key, budget, frozen, block):
+    def frozen_grid(self, key, budget, frozen, block, done=0):
         """Stream VEGAS+ rounds of `block` points on a frozen `(grid, counts, strata)`."""
         run_plan = plan("adaptive", budget, self.chunk, self.mesh.size, self.d, block)
-        return self._stream(key, frozen, run_plan)
+        return self._stream(key, frozen, run_plan, done)
 
 
 def _adaptive_block(budget: int) -> int:

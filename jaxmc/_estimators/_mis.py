@@ -21,7 +21,7 @@ from .._checks import (
     check_key,
     is_concrete,
 )
-from .._integrand import evaluate, ratio
+from .._integrand import bind, evaluate, ratio
 from .._stats import Estimate, diagnosed, estimate_iid, moments, tail_of
 from ..proposals import check_proposal
 from ._mis_weights import HEURISTICS, mis_weights, safe_log
@@ -71,6 +71,7 @@ def mis(
     heuristic: str = "balance",
     beta: float = 2.0,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""Multiple importance sampling, multi-sample model (Veach, §9.2).
 
@@ -100,12 +101,13 @@ def mis(
     - `heuristic`: `"balance"` or `"power"`.
     - `beta`: the power heuristic's exponent (> 0).
     - `batched`: if True, `f` receives all $\sum_k n_k$ points at once.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as `f(x, args)`.
 
     **Returns:** an `Estimate` with `n = Σ counts` integrand evaluations (each
     proposal's `pdf` is evaluated at every point).
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     proposals = _check_proposals(proposals)
     s = len(proposals)
     if isinstance(counts, (tuple, list)):
@@ -201,6 +203,7 @@ def mis_one_sample(
     heuristic: str = "balance",
     beta: float = 2.0,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""Multiple importance sampling, one-sample model (Veach, §9.2.4; the assignment).
 
@@ -228,11 +231,12 @@ def mis_one_sample(
     - `n`: number of samples (static int).
     - `heuristic`, `beta`: as in `mis`.
     - `batched`: if True, `f` receives all `n` points at once.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as `f(x, args)`.
 
     **Returns:** an `Estimate` with `n` evaluations.
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     proposals = _check_proposals(proposals)
     s = len(proposals)
     c = _check_probs(probs, s)

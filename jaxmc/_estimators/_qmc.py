@@ -14,7 +14,7 @@ from jax.scipy.special import betainc
 from .._box import to_box
 from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_key
 from .._diagnostics import bounded_variance
-from .._integrand import evaluate, ratio
+from .._integrand import bind, evaluate, ratio
 from .._points._registry import unit_points
 from .._stats import Estimate, check_level, diagnosed, tail_of
 
@@ -106,6 +106,7 @@ def randomized_qmc(
     points: str | Callable = "sobol",
     replicas: int = 16,
     batched: bool = False,
+    args: Any = None,
 ) -> QMCEstimate:
     r"""Randomised quasi-Monte Carlo: the mean over independent randomisations of a point set.
 
@@ -135,6 +136,7 @@ def randomized_qmc(
     - `replicas`: $R$, independent randomisations (static int; with 1 the
       variance is `inf`). A few (8–32) suffice; more spend points on error bars.
     - `batched`: if True, `f` receives all $nR$ points at once.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as `f(x, args)`.
 
     **Returns:** a `QMCEstimate` (an `Estimate`) with `n = n·R` evaluations;
     `est.t_interval(0.95)` gives the Student-t interval with $R-1$ degrees of
@@ -148,7 +150,7 @@ def randomized_qmc(
         ```
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     lo, hi = check_bounds(lo, hi, finite_volume=True)
     n = check_count(n)
     replicas = check_count(replicas, "replicas")

@@ -13,7 +13,7 @@ from .. import _random
 from .._box import to_box
 from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_flag, check_key
 from .._diagnostics import bounded_variance
-from .._integrand import evaluate, ratio
+from .._integrand import bind, evaluate, ratio
 from .._points._random_sets import check_counts
 from .._stats import Estimate, diagnosed, tail_of
 
@@ -64,6 +64,7 @@ def stratified(
     *,
     per_stratum: int = 2,
     batched: bool = False,
+    args: Any = None,
 ) -> Estimate:
     r"""Stratified sampling over a regular grid of strata (lecture §4.2).
 
@@ -98,6 +99,7 @@ def stratified(
       bounds), e.g. `(8, 8)` for 64 square strata.
     - `per_stratum`: points per stratum $m$ (static int, default 2).
     - `batched`: if True, `f` receives all points at once.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as `f(x, args)`.
 
     **Returns:** an `Estimate` with `n = M·m` evaluations. All points are drawn
     at once; for huge budgets use `integrate(method="stratified")`.
@@ -110,7 +112,7 @@ def stratified(
         ```
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     lo, hi = check_bounds(lo, hi, finite_volume=True)
     d = 1 if lo.ndim == 0 else lo.shape[0]
     counts = check_counts(counts, d, scalar=lo.ndim == 0)

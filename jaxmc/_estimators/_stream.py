@@ -32,7 +32,6 @@ Three kinds of statistical unit are used:
 from __future__ import annotations
 
 import math
-import sys
 from functools import partial
 
 import equinox as eqx
@@ -49,6 +48,7 @@ from .._integrand import evaluate, ratio
 from .._points._common import uint32_to_unit
 from .._points._registry import unit_points
 from .._points._sobol import sobol_block, sobol_scramble
+from .._progress import report
 from .._stats import (
     Estimate,
     Moments,
@@ -279,10 +279,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         m, e, b = sharded(t)
         carry = (merge(total, m), evaluations + e, bad + b)
         if progress:
-            est = stream_estimate(*carry, plan.replicas)
-            # Every device of a shard_map runs this step: the first one reports.
-            report = partial(jax.debug.callback, _report, est.mean, est.stderr, est.n)
-            jax.lax.cond(_this_device(mesh)[0] == 0, report, lambda: None)
+            _report(stream_estimate(*carry, plan.replicas), plan.budget, mesh, last=False)
         return carry
 
     if not tolerant:
@@ -307,7 +304,10 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         _, carry = jax.lax.while_loop(
             cond, lambda s: (s[0] + 1, step(s[1], s[0])), (zero, (start, zero, zero))
         )
-    return stream_estimate(*carry, plan.replicas)
+    est = stream_estimate(*carry, plan.replicas)
+    if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
+        _report(est, plan.budget, mesh, last=True)
+    return est
 
 
 def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **settings):
@@ -334,11 +334,16 @@ def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **setti
 
 @eqx.filter_jit
 def _sharded_stream(args, settings):
-    """`stream(*args, **settings)` under `shard_map` over `settings["mesh"]`, taking its arrays as arguments."""
-    arrays, static = eqx.partition(args, eqx.is_array)
+    """`stream(*args, **settings)` under `shard_map` over `settings["mesh"]`, taking its arrays
+    (those of the integrand's `args` among them) as arguments."""
+    arrays, static = eqx.partition((args, settings), eqx.is_array)
+
+    def run(arrays):
+        args, settings = eqx.combine(arrays, static)
+        return stream(*args, **settings)
+
     return jax.shard_map(
-        lambda arrays: stream(*eqx.combine(arrays, static), **settings),
-        mesh=settings["mesh"], in_specs=PartitionSpec(), out_specs=PartitionSpec(),
+        run, mesh=settings["mesh"], in_specs=PartitionSpec(), out_specs=PartitionSpec(),
     )(jax.tree.map(_replicated, arrays))
 
 
@@ -409,11 +414,9 @@ def _empty_like(shapes: Moments) -> Moments:
     return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
 
-def _report(mean, stderr, evaluations):
-    print(
-        f"\rjaxmc.integrate: n={int(evaluations):,} mean={np.asarray(mean)} "
-        f"stderr={np.asarray(stderr)}",
-        end="",
-        file=sys.stderr,
-        flush=True,
-    )
+def _report(est: Estimate, total: int, mesh, last: bool) -> None:
+    """Send the running estimate to the progress bar (`_progress.report`), from the first
+    device: every device of a `shard_map` runs the loop."""
+    send = partial(report, total=total, last=last)
+    callback = partial(jax.debug.callback, send, est.mean, est.stderr, est.n)
+    jax.lax.cond(_this_device(mesh)[0] == 0, callback, lambda: None)

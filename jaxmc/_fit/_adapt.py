@@ -14,6 +14,7 @@ import optimistix as optx
 
 from .._checks import MAX_COUNT, check_callable, check_choice, check_count, check_key, is_concrete
 from .._diagnostics import warn_if_unreliable
+from .._integrand import bind
 from .._stats import Combined, Estimate, ReliabilityWarning, combine, estimate_fields
 from ..proposals import GaussianMixture, Grid, Partition, check_proposal
 from ._miser import PartitionGrowth
@@ -21,6 +22,11 @@ from ._objectives import OBJECTIVES
 from ._refit import Refit
 from ._rule import AbstractAdaptation, Integrand, Samples, run_adaptation
 from ._vegas import MAX_STRATA, Vegas, VegasPlus
+
+
+# Compiled once per integrand, rule, proposal structure and sizes: `adapt` and `chain` run
+# again for new keys, starting proposals or `args` without tracing anew.
+_compiled_adaptation = eqx.filter_jit(run_adaptation)
 
 
 def _check_fraction(value, name: str, lo: float = 0.0, hi: float = math.inf) -> float:
@@ -74,6 +80,7 @@ def adapt(
     objective: str = "variance",
     batched: bool = False,
     rule: AbstractAdaptation | None = None,
+    args: Any = None,
 ) -> tuple[Combined, Any]:
     r"""Adaptive importance sampling in the style of vegas: sample, estimate, refit, combine.
 
@@ -111,9 +118,11 @@ def adapt(
     out of the combination (and of `parts`); they still train the proposal.
 
     The loop is a `lax.scan` with static sizes, so `adapt` works under `jax.jit`
-    and `jax.vmap` (e.g. over a parameter `f` closes over: a family of
-    integrals in one compiled call). Pass the returned proposal back in to reuse
-    it for a related integrand.
+    and `jax.vmap` (e.g. over a parameter in `args`: a family of integrals in
+    one compiled call). It is compiled once per integrand object `f`, rule and
+    sizes: a second call with new `args` (or a new key or starting proposal)
+    reuses the compiled loop, a new closure compiles anew. Pass the returned
+    proposal back in to reuse it for a related integrand.
 
     **Arguments:**
 
@@ -135,6 +144,8 @@ def adapt(
     - `rule`: an adaptation rule (`Vegas`, `VegasPlus`, `PartitionGrowth`,
       `Refit`, or your own `AbstractAdaptation`) to use instead of the one
       the options above choose for the proposal (`default_rule`).
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as
+      `f(x, args)` (see `jaxmc.integrate`).
 
     **Returns:** `(combined, proposal)` — a `Combined` and the adapted proposal.
 
@@ -149,7 +160,7 @@ def adapt(
         ```
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     proposal = check_proposal(proposal, methods=("sample", "log_pdf"))
     iterations = check_count(iterations, "iterations")
     n = check_count(n_per_iteration, "n_per_iteration", minimum=2, maximum=MAX_COUNT)
@@ -180,7 +191,9 @@ def adapt(
         )
     elif not isinstance(rule, AbstractAdaptation):
         raise TypeError(f"`rule` must be an AbstractAdaptation, got {type(rule).__name__}.")
-    parts, state, _ = run_adaptation(rule, key, Integrand(f, batched), proposal, iterations, n)
+    parts, state, _ = _compiled_adaptation(
+        rule, key, Integrand(f, batched), proposal, iterations, n
+    )
     parts = jax.tree.map(lambda a: a[warmup:], parts)
     return _warn_if_rounds_disagree(combine(parts)), rule.proposal(state)
 
@@ -252,6 +265,7 @@ def chain(
     stages: Sequence[Stage],
     *,
     batched: bool = False,
+    args: Any = None,
 ) -> tuple[Combined, Any]:
     r"""Run adaptation stages one after another; each stage can be seeded by the last one's samples.
 
@@ -272,13 +286,13 @@ def chain(
 
     Every round is an independent unbiased estimate (its density was fixed
     before it drew), so all rounds past each stage's warm-up are combined by
-    `combine`.
+    `combine`. With `args`, `f` is called as `f(x, args)` (as in `adapt`).
 
     **Returns:** `(combined, proposal)`: the `Combined` of every stage's kept
     rounds (in order) and the last stage's proposal.
     """
     key = check_key(key)
-    f = check_callable(f)
+    f = bind(check_callable(f), args)
     stages = list(stages)
     if not stages or not all(isinstance(s, Stage) for s in stages):
         raise TypeError("`stages` must be a non-empty sequence of jaxmc.fit.Stage.")
@@ -297,7 +311,7 @@ def chain(
             proposal = stage.seed(proposal, samples)
         proposal = check_proposal(proposal, f"proposal of stage {s}", ("sample", "log_pdf"))
         seeds_next = s + 1 < len(stages) and stages[s + 1].seed is not None
-        parts, state, samples = run_adaptation(
+        parts, state, samples = _compiled_adaptation(
             stage.rule, jax.random.fold_in(key, s), integrand, proposal, iterations, n,
             keep_samples=seeds_next,
         )

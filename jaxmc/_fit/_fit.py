@@ -23,7 +23,7 @@ import optimistix as optx
 from .. import _random
 from .._box import log_volume, to_box
 from .._checks import MAX_COUNT, check_callable, check_choice, check_count, check_key
-from .._integrand import evaluate
+from .._integrand import bind
 from ..proposals import check_proposal, weighted_draw
 from ._default_fit import default_fit, has_default_fit
 from ._objectives import OBJECTIVES, log_abs, objective_loss
@@ -105,6 +105,7 @@ def fit(
     steps_per_batch: int = 1,
     filter_spec: Any = None,
     defensive: float = 0.1,
+    args: Any = None,
 ) -> FitResult:
     r"""Fit `proposal` to `f` by minimising the importance estimator's variance.
 
@@ -113,7 +114,7 @@ def fit(
     proposals are not fitted by a gradient solver: a sample average of the
     variance is flat where the proposal puts no samples, so from a start that
     barely sees a narrow peak the solver drifts instead of finding it. Instead
-    $R = $ `min(max_steps, 10)` rounds of `n` points of the VEGAS rule
+    $R$ = `min(max_steps, 10)` rounds of `n` points of the VEGAS rule
     (`jaxmc.fit.Vegas`) on a 64-bin `Grid` find where $|f|$ is, and the
     proposal is fitted to the last round's samples $x_i \sim q$ with weights
     $w_i \propto |f(x_i)|/q(x_i)$ by minimising the forward divergence
@@ -147,7 +148,7 @@ def fit(
     $$L(\theta) = \log \sum_i w_i \frac{f(x_i)^2}{p_\theta(x_i)^2},\qquad
     x_i = T_\theta(u_i),$$
     a sample average over `n` reparameterised draws with the base randomness
-    $u_i$ fixed by `key` (passed to the solver as `args`; by default a share
+    $u_i$ fixed by `key` (the optimistix solver's `args`; by default a share
     `defensive` of them uniform on the box, see below), so $L$ is a
     deterministic, differentiable function of $\theta$ — what BFGS's line
     search assumes. It is evaluated with `logsumexp` in log space, so it is
@@ -215,14 +216,16 @@ def fit(
       of each batch is drawn uniformly, so regions the proposal has starved
       still get samples (and weights); one frozen batch (`resample=False`) gets
       none. `0` disables it; ignored for `"reverse_kl"`.
+    - `args`: parameters of `f` (any pytree); if given, `f` is called as
+      `f(x, args)` (see `jaxmc.integrate`).
 
     **Returns:** a `FitResult`. Solver failures (e.g. `max_steps` reached) are
     reported in `result`, not raised.
 
-    `fit` traces and compiles on every call (seconds for a `Flow`). To fit
-    repeatedly, for new keys or starting proposals, jit it once:
-    `eqx.filter_jit(lambda k, p: fit(k, f, p, n))` compiles on the first call
-    only (milliseconds afterwards for a small flow).
+    `fit` is compiled once per integrand object `f`, proposal structure,
+    solver and sizes (seconds for a `Flow`): fitting again with a new key,
+    new starting parameters or new `args` of the same shapes reuses it; a new
+    closure per call compiles anew.
 
     !!! Example
 
@@ -249,9 +252,9 @@ def fit(
     plain = objective == "variance" and steps_per_batch == 1 and not (
         reuse or resample or filter_spec is not None
     )
+    integrand = Integrand(bind(f, args), batched)
     if solver is None and plain and has_default_fit(proposal, n):
-        fitted, loss, steps, losses = default_fit(key, Integrand(f, batched), proposal, n, max_steps)
-        return FitResult(fitted, loss, steps, optx.RESULTS.successful, losses)
+        return _default_fit(key, integrand, proposal, n, max_steps)
     params, static = split_parameters(proposal, filter_spec)
     default_solver = solver is None
     solver = check_solver(solver, proposal, params)
@@ -266,6 +269,29 @@ def fit(
     # sample can put a spike on one heavily weighted uniform point (a mixture component
     # shrinks onto it and the objective runs to -inf). Fresh batches leave no such spike.
     n_def = 0 if frozen and not resample else _defensive_count(defensive, n, objective)
+    return _gradient_fit(
+        key, integrand, params, static, solver, n=n, n_def=n_def, defensive=defensive,
+        objective=objective, frozen=frozen, resample=resample, max_steps=max_steps,
+        steps_per_batch=steps_per_batch,
+    )
+
+
+# Both fits are compiled once per integrand object, proposal structure, solver and sizes:
+# fitting again with a new key, starting parameters or `args` reuses the compiled code.
+
+
+@eqx.filter_jit
+def _default_fit(key, integrand, proposal, n, max_steps):
+    fitted, loss, steps, losses = default_fit(key, integrand, proposal, n, max_steps)
+    return FitResult(fitted, loss, steps, optx.RESULTS.successful, losses)
+
+
+@eqx.filter_jit
+def _gradient_fit(
+    key, integrand, params, static, solver, *, n, n_def, defensive, objective, frozen, resample,
+    max_steps, steps_per_batch,
+):
+    """The gradient fit of `fit` on the parameters `params` (the rest of the proposal in `static`)."""
 
     def draw_frozen(k, p):
         prop = eqx.combine(jax.lax.stop_gradient(p), static)
@@ -273,34 +299,34 @@ def fit(
             x, log_q, w = weighted_draw(prop, k, n)
         else:
             x, _, log_q, w = _defensive_draw(prop, k, n, n_def, defensive)
-        logf = log_abs(evaluate(f, x, batched))
+        logf = log_abs(integrand(x))
         return x, jax.lax.stop_gradient(logf), jax.lax.stop_gradient(log_q), w
 
     if frozen:
 
-        def loss(p, args):
-            x, logf, log_q, w = args
+        def loss(p, samples):
+            x, logf, log_q, w = samples
             log_p = eqx.combine(p, static).log_pdf(x)
             return objective_loss(objective, logf, log_p, w, log_q)
 
         if resample:
             make_args = lambda i, p: draw_frozen(jax.random.fold_in(key, i), p)
         else:
-            args = draw_frozen(key, params)
+            solver_args = draw_frozen(key, params)
     else:
 
         def loss(p, k):
             prop = eqx.combine(p, static)
             if n_def == 0:
                 x, log_p, w = weighted_draw(prop, k, n)
-                logf = log_abs(evaluate(f, x, batched))
+                logf = log_abs(integrand(x))
                 return objective_loss(objective, logf, log_p, w)
             x, log_p, log_m, w = _defensive_draw(prop, k, n, n_def, defensive)
-            logf = log_abs(evaluate(f, x, batched))
+            logf = log_abs(integrand(x))
             return objective_loss(objective, logf, log_p, w, log_m)
 
         make_args = lambda i, p: jax.random.fold_in(key, i)
-        args = key
+        solver_args = key
 
     if resample:
         params, losses = run_steps(make_args, loss, solver, params, max_steps, steps_per_batch)
@@ -312,10 +338,10 @@ def fit(
             result=optx.RESULTS.successful,
             losses=losses,
         )
-    params, result, steps = minimise(loss, solver, params, args, max_steps)
+    params, result, steps = minimise(loss, solver, params, solver_args, max_steps)
     return FitResult(
         proposal=eqx.combine(params, static),
-        loss=loss(params, args),
+        loss=loss(params, solver_args),
         steps=steps,
         result=result,
     )

@@ -25,9 +25,14 @@ from .._stats import Estimate
 
 
 class Integrand(eqx.Module):
-    """An integrand and how to call it: `f(x)` for one point, or the whole batch if `batched`."""
+    """An integrand and how to call it: `f(x)` for one point, or the whole batch if `batched`.
 
-    f: Callable = eqx.field(static=True)
+    `f` is a pytree leaf, not static metadata: an integrand that carries arrays
+    (an equinox Module, or `f` bound to `args`) has them traced under
+    `equinox.filter_jit`, so new values reuse the compiled code.
+    """
+
+    f: Callable
     batched: bool = eqx.field(static=True, default=False)
 
     def __call__(self, x: jax.Array) -> jax.Array:

@@ -37,6 +37,9 @@ _DENSE_BFGS_MAX = 2000
 # Flows' default, as in neural importance sampling (Müller et al. 2019): Adam on fresh
 # samples at every step, for a fixed number of steps.
 _FLOW_LEARNING_RATE = 3e-3
+# One object: the solver is part of a compiled fit's cache key, and `optax.adam` builds
+# new functions on every call (a new solver would compile the fit anew).
+_FLOW_SOLVER = optx.OptaxMinimiser(optax.adam(_FLOW_LEARNING_RATE), rtol=0.0, atol=0.0)
 
 
 def _has_flow(proposal) -> bool:
@@ -47,7 +50,7 @@ def _has_flow(proposal) -> bool:
 
 def default_solver(proposal, params):
     if _has_flow(proposal):
-        return optx.OptaxMinimiser(optax.adam(_FLOW_LEARNING_RATE), rtol=0.0, atol=0.0)
+        return _FLOW_SOLVER
     size = sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
     if size > _DENSE_BFGS_MAX:
         return optx.LBFGS(rtol=1e-5, atol=1e-5)

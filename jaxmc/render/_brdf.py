@@ -1,4 +1,4 @@
-r"""A diffuse base plus a Beckmann microfacet lobe: evaluation, sampling and pdf.
+r"""A diffuse base plus a Beckmann microfacet lobe: its evaluation (sampling is `_directions`).
 
 $$ f(\omega_o, \omega_i) = \frac{k_d}{\pi}
    + k_s \frac{D(h)\, G_1(\omega_i) G_1(\omega_o)}{4\cos\theta_i\cos\theta_o},
@@ -6,10 +6,8 @@ $$ f(\omega_o, \omega_i) = \frac{k_d}{\pi}
 
 with $h$ the half vector, Smith's shadowing for Beckmann (Walter et al. 2007,
 rational approximation) and no Fresnel term (a conductor of unit
-reflectance, as in Veach's scene). Sampling picks the glossy lobe with
-probability $k_s / (k_s + \bar k_d)$ and then draws $h$ with density
-$D(h)\cos\theta_h$ (so $\omega_i$ has density $D\cos\theta_h / 4|\omega_o\cdot h|$),
-otherwise a cosine-weighted direction; the pdf is the mixture of the two.
+reflectance, as in Veach's scene). The renderer samples it as a mixture
+(`specular_probability`) of `BeckmannLobe` and `CosineHemisphere`.
 
 Everything is written for one shading point and is smooth in $\alpha$, $k_d$
 and $k_s$ (with the directions held fixed), so light-sampled images
@@ -20,8 +18,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .. import warps
-from ._math import dot, normalize, reflect, safe_div, safe_sqrt, to_world
+from ._math import dot, normalize, safe_div, safe_sqrt
 
 
 def _tan2(v, n):
@@ -60,30 +57,3 @@ def evaluate(diffuse, specular, alpha, n, wo, wi):
     glossy = safe_div(glossy, 4.0 * ci * co)
     f = diffuse / jnp.pi + specular * glossy
     return jnp.where(front, f, 0.0)
-
-
-def pdf(diffuse, specular, alpha, n, wo, wi):
-    """Solid-angle density of `sample` producing `wi`."""
-    ci = dot(n, wi)
-    p_spec = specular_probability(diffuse, specular)
-    h = normalize(wi + wo)
-    p_glossy = safe_div(beckmann_d(h, n, alpha) * dot(h, n), 4.0 * jnp.abs(dot(wo, h)))
-    p = p_spec * p_glossy + (1.0 - p_spec) * ci / jnp.pi
-    return jnp.where((ci > 0) & (dot(n, wo) > 0), p, 0.0)
-
-
-def sample(diffuse, specular, alpha, n, wo, u):
-    """Draw `wi` from `u ∈ [0,1)^2`; the first coordinate is re-used to pick the lobe."""
-    p_spec = specular_probability(diffuse, specular)
-    glossy = u[0] < p_spec
-    u0 = jnp.where(glossy, safe_div(u[0], p_spec), safe_div(u[0] - p_spec, 1.0 - p_spec))
-    u0 = jnp.clip(u0, 0.0, 1.0 - 1e-7)
-    # Beckmann half vector: tan^2 theta_h = -alpha^2 log(1 - u0)
-    tan_t = alpha * safe_sqrt(-jnp.log1p(-u0))
-    cos_t = 1.0 / jnp.sqrt(1.0 + tan_t * tan_t)
-    sin_t = tan_t * cos_t
-    phi = 2.0 * jnp.pi * u[1]
-    h = to_world(jnp.stack([sin_t * jnp.cos(phi), sin_t * jnp.sin(phi), cos_t]), n)
-    wi_glossy = reflect(wo, h)
-    wi_diffuse = to_world(warps.hemisphere_cosine(jnp.stack([u0, u[1]])), n)
-    return jnp.where(glossy, wi_glossy, wi_diffuse)

@@ -120,10 +120,6 @@ class Quads(eqx.Module):
         del point
         return self.normals[index]
 
-    def sample(self, index, u):
-        """A uniform point on quad `index` (area measure, pdf 1/area)."""
-        return self.corner[index] + u[0] * self.edge_u[index] + u[1] * self.edge_v[index]
-
 
 class Planes(eqx.Module):
     point: jax.Array

@@ -5,7 +5,10 @@ emission seen directly plus the reflected direct light
 
 $$ L(x, \omega_o) = \int_{H^2} f(\omega_o, \omega_i)\, L_e(x, \omega_i) \cos\theta_i \, d\omega_i , $$
 
-estimated with one of
+estimated with one of the strategies below. Each builds the direction
+proposals of `jaxmc.render` at the shading point (`SphereLight`, `QuadLight`,
+`DirectionMixture` of `BeckmannLobe` and `CosineHemisphere`, `UniformHemisphere`)
+and draws from their `warp`, so the pixel's 2-D point pattern drives them.
 
 - `"light"`: choose a light uniformly, sample the cone a sphere subtends
   (solid angle) or a point on a quad by area (lecture eq. 15), shadow ray
@@ -31,11 +34,18 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .. import warps
 from .._checks import check_count, check_key
 from .._estimators._mis_weights import mis_weights
 from . import _brdf
-from ._math import dot, safe_div, to_world
+from ._directions import (
+    BeckmannLobe,
+    CosineHemisphere,
+    DirectionMixture,
+    QuadLight,
+    SphereLight,
+    UniformHemisphere,
+)
+from ._math import dot, safe_div
 from ._sampling import POINT_SETS, point_set
 from ._scene import STRATEGIES, Scene, offset
 
@@ -49,8 +59,31 @@ def _distance(point, origin, direction, t):
     return jnp.linalg.norm(origin + t * direction - point)
 
 
+def _pick_light(scene: Scene, u):
+    """Choose one of the scene's lights uniformly with `u[0]` (rescaled for re-use): `(g, u)`."""
+    m = len(scene.lights)
+    scaled = u[0] * m
+    i = jnp.clip(jnp.floor(scaled).astype(int), 0, m - 1)
+    return jnp.asarray(scene.lights)[i], jnp.stack([jnp.clip(scaled - i, 0.0, 1.0), u[1]])
+
+
+def _light_proposals(scene: Scene, point, g):
+    """The direction proposals of light `g` (a traced global index) seen from `point`:
+    `(sphere, quad)`, `None` for a kind of shape the scene's lights do not include."""
+    ns = len(scene.spheres)
+    sphere = quad = None
+    if any(j < ns for j in scene.lights):
+        j = jnp.clip(g, 0, ns - 1)
+        sphere = SphereLight(scene.spheres.center[j], scene.spheres.radius[j], point)
+    if any(j >= ns for j in scene.lights):
+        q = jnp.clip(g - ns, 0, len(scene.quads) - 1)
+        quads = scene.quads
+        quad = QuadLight(quads.corner[q], quads.edge_u[q], quads.edge_v[q], point)
+    return sphere, quad
+
+
 class _Shading:
-    """Everything known at the point a camera ray hit."""
+    """Everything known at the point a camera ray hit, and its direction proposals."""
 
     def __init__(self, scene: Scene, origin, direction):
         t, g = scene.intersect(origin, direction)
@@ -66,33 +99,67 @@ class _Shading:
         self.point = point
         self.material = (mat.diffuse[g], mat.specular[g], mat.roughness[g])
         self.scene = scene
+        diffuse, specular, roughness = self.material
+        # BRDF sampling: the glossy lobe with probability k_s / (k_s + mean k_d), else cosine
+        p_glossy = _brdf.specular_probability(diffuse, specular)
+        self.brdf = DirectionMixture(
+            (BeckmannLobe(self.n, self.wo, roughness), CosineHemisphere(self.n)),
+            jnp.stack([p_glossy, 1.0 - p_glossy]),
+        )
 
     def brdf_cos(self, wi):
         f = _brdf.evaluate(*self.material, self.n, self.wo, wi)
         return f * jnp.maximum(dot(self.n, wi), 0.0)
 
-    def brdf_pdf(self, wi):
-        return _brdf.pdf(*self.material, self.n, self.wo, wi)
+    def sample_light(self, u):
+        """A light chosen uniformly (re-using `u[0]`) and a direction towards it: `(wi, g)`."""
+        g, u = _pick_light(self.scene, u)
+        sphere, quad = _light_proposals(self.scene, self.point, g)
+        ns = len(self.scene.spheres)
+        wi = jnp.zeros(3)
+        if sphere is not None:
+            wi = jnp.where(g < ns, sphere.warp(u)[0], wi)
+        if quad is not None:
+            wi = jnp.where(g >= ns, quad.warp(u)[0], wi)
+        return wi, g
+
+    def light_pdf(self, wi, g, t, origin):
+        """Density of `sample_light` at `wi`, whose ray from `origin` first hits shape `g` at `t`.
+
+        The density of the light hit (times the probability of choosing it), 0
+        if `g` is not a light: the tracer has decided the hit, so the light's
+        `pdf_on_hit` is used, with the distance from the shading point.
+        """
+        scene = self.scene
+        ns = len(scene.spheres)
+        sphere, quad = _light_proposals(scene, self.point, g)
+        distance = _distance(self.point, origin, wi, t)
+        p = jnp.zeros(())
+        if sphere is not None:
+            p = jnp.where(g < ns, sphere.pdf_on_hit(wi, distance), p)
+        if quad is not None:
+            p = jnp.where(g >= ns, quad.pdf_on_hit(wi, distance), p)
+        n_shapes = ns + len(scene.quads) + len(scene.planes)
+        is_light = jnp.zeros(n_shapes, bool).at[jnp.asarray(scene.lights)].set(True)
+        return jnp.where((g >= 0) & is_light[jnp.maximum(g, 0)], p * (1.0 / len(scene.lights)), 0.0)
 
     def light_technique(self, u):
         """`(f cos L_e, p_L, p_B)` for a light-sampled direction (shadow ray included)."""
-        wi, light = self.scene.sample_light(self.point, u)
+        wi, light = self.sample_light(u)
         origin = offset(self.point, self.n, wi)
         le, g, t = self.scene.trace_emission(origin, wi)
         le = jnp.where(g == light, le, 0.0)  # occluded: something else is hit first
-        p_l = self.scene.light_pdf(self.point, wi, g, _distance(self.point, origin, wi, t))
-        return self.brdf_cos(wi) * le, p_l, self.brdf_pdf(wi)
+        p_l = self.light_pdf(wi, g, t, origin)
+        return self.brdf_cos(wi) * le, p_l, self.brdf.pdf(wi)
 
     def direction_technique(self, wi, p):
         """`(f cos L_e, p_L, p)` for a direction drawn by a non-light technique with density `p`."""
         origin = offset(self.point, self.n, wi)
         le, g, t = self.scene.trace_emission(origin, wi)
-        p_l = self.scene.light_pdf(self.point, wi, g, _distance(self.point, origin, wi, t))
-        return self.brdf_cos(wi) * le, p_l, p
+        return self.brdf_cos(wi) * le, self.light_pdf(wi, g, t, origin), p
 
     def brdf_technique(self, u):
-        wi = _brdf.sample(*self.material, self.n, self.wo, u)
-        return self.direction_technique(wi, self.brdf_pdf(wi))
+        return self.direction_technique(*self.brdf.warp(u))
 
 
 def _direct(shading: _Shading, strategy: str, ua, ub):
@@ -125,26 +192,19 @@ def _direct(shading: _Shading, strategy: str, ua, ub):
             use_light = u[0] < c
             u0 = jnp.where(use_light, u[0] / c, (u[0] - c) / (1.0 - c))
             v = jnp.stack([jnp.clip(u0, 0.0, 1.0 - 1e-7), u[1]])
-            wi_light, light = shading.scene.sample_light(shading.point, v)
-            wi_brdf = _brdf.sample(*shading.material, shading.n, shading.wo, v)
+            wi_light, light = shading.sample_light(v)
+            wi_brdf = shading.brdf.warp(v)[0]
             wi = jnp.where(use_light, wi_light, wi_brdf)
             origin = offset(shading.point, shading.n, wi)
             le, g, t = shading.scene.trace_emission(origin, wi)
             le = jnp.where(use_light & (g != light), 0.0, le)
-            p_l = shading.scene.light_pdf(
-                shading.point, wi, g, _distance(shading.point, origin, wi, t)
-            )
-            den = c * p_l + (1.0 - c) * shading.brdf_pdf(wi)
+            den = c * shading.light_pdf(wi, g, t, origin) + (1.0 - c) * shading.brdf.pdf(wi)
             return safe_div(shading.brdf_cos(wi) * le, den)
 
         return 0.5 * (one(ua[0]) + one(ua[1]))
-    if strategy == "hemisphere_uniform":
-        wi = to_world(warps.hemisphere_uniform(ua), shading.n)
-        f, _, p = shading.direction_technique(wi, 1.0 / (2.0 * jnp.pi))
-        return f / p
-    if strategy == "hemisphere_cosine":
-        wi = to_world(warps.hemisphere_cosine(ua), shading.n)
-        f, _, p = shading.direction_technique(wi, dot(shading.n, wi) / jnp.pi)
+    if strategy in ("hemisphere_uniform", "hemisphere_cosine"):
+        kind = UniformHemisphere if strategy == "hemisphere_uniform" else CosineHemisphere
+        f, _, p = shading.direction_technique(*kind(shading.n).warp(ua))
         return safe_div(f, p)
     raise AssertionError(strategy)
 

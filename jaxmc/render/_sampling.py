@@ -7,10 +7,7 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
-
 from .._points._registry import unit_points
-from ._math import safe_sqrt
 
 
 POINT_SETS = ("uniform", "stratified", "latin_hypercube", "halton")
@@ -32,12 +29,3 @@ def point_set(name: str, key, n: int):
         raise ValueError(f"`points` must be one of {POINT_SETS}, got {name!r}.")
     counts = grid_counts(n) if name == "stratified" else None
     return unit_points(_REGISTRY_NAMES.get(name, name), key, n, 2, counts=counts)
-
-
-def cone_one_minus_cos_max(radius, distance):
-    r"""$1 - \cos\theta_{\max}$ of the cone a sphere subtends, without cancellation.
-
-    With $s = r^2/d^2$: $1 - \sqrt{1 - s} = s / (1 + \sqrt{1 - s})$.
-    """
-    s = jnp.clip((radius / distance) ** 2, 0.0, 1.0)
-    return s / (1.0 + safe_sqrt(1.0 - s))

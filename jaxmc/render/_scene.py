@@ -12,11 +12,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .. import warps
 from ._camera import Camera
 from ._geometry import T_MIN, Material, Planes, Quads, Spheres
-from ._math import dot, normalize, safe_div
-from ._sampling import cone_one_minus_cos_max
+from ._math import dot
 
 
 LIGHT_STRATEGIES = ("light", "brdf", "mis_balance", "mis_power", "mis_one_sample")
@@ -102,56 +100,6 @@ class Scene(eqx.Module):
         front = hit & (dot(n, direction) < 0)
         le = jnp.where(front, self.material.emission[g], 0.0)
         return le, jnp.where(hit, g, -1), t_safe
-
-    # -- light sampling ----------------------------------------------------
-    def sample_light(self, point, u):
-        """Pick a light uniformly (re-using `u[0]`) and a direction towards it.
-
-        Spheres are sampled uniformly in the cone they subtend (solid angle);
-        quads uniformly by area (eq. 15), the direction being towards that point.
-        Returns `(direction, g)`, `g` the light's global index.
-        """
-        ns, nq, _ = self._kinds()
-        lights = jnp.asarray(self.lights)
-        m = len(self.lights)
-        scaled = u[0] * m
-        i = jnp.clip(jnp.floor(scaled).astype(int), 0, m - 1)
-        u = jnp.stack([jnp.clip(scaled - i, 0.0, 1.0), u[1]])
-        g = lights[i]
-        sphere_lights = [j for j in self.lights if j < ns]
-        quad_lights = [j for j in self.lights if j >= ns]
-        w = jnp.zeros(3)
-        if sphere_lights:
-            j = jnp.clip(g, 0, ns - 1)
-            center, radius = self.spheres.center[j], self.spheres.radius[j]
-            w = jnp.where(g < ns, warps.sphere_solid_angle(u, center, radius, point), w)
-        if quad_lights:
-            q = jnp.clip(g - ns, 0, nq - 1)
-            w = jnp.where(g >= ns, normalize(self.quads.sample(q, u) - point), w)
-        return w, g
-
-    def light_pdf(self, point, direction, g, t):
-        """Solid-angle density of `sample_light` at `direction`, whose ray first hits shape `g` at `t`.
-
-        The density of the light actually hit (times the selection probability),
-        0 if `g` is not a light. Uses the hit distance for quads: $p_\\omega = t^2/(A|\\cos\\theta'|)$.
-        """
-        ns, nq, _ = self._kinds()
-        sel = 1.0 / len(self.lights)
-        is_light = (
-            jnp.zeros(ns + nq + len(self.planes), bool).at[jnp.asarray(self.lights)].set(True)
-        )
-        p = jnp.zeros(())
-        if any(j < ns for j in self.lights):
-            j = jnp.clip(g, 0, ns - 1)
-            dist = jnp.linalg.norm(self.spheres.center[j] - point)
-            omc = cone_one_minus_cos_max(self.spheres.radius[j], dist)
-            p = jnp.where(g < ns, safe_div(1.0, 2.0 * jnp.pi * omc), p)
-        if any(j >= ns for j in self.lights):
-            q = jnp.clip(g - ns, 0, nq - 1)
-            cos_l = jnp.abs(dot(self.quads.normals[q], direction))
-            p = jnp.where(g >= ns, safe_div(t * t, self.quads.areas[q] * cos_l), p)
-        return jnp.where((g >= 0) & is_light[jnp.maximum(g, 0)], sel * p, 0.0)
 
 
 def offset(point, normal, direction):
