@@ -1,4 +1,4 @@
-r"""The progress bar of `integrate`: a tqdm bar moved from inside the compiled loop.
+r"""The progress bar of `integrate` and `adapt`: a tqdm bar moved from inside the compiled loop.
 
 The streaming loop runs compiled; after every chunk it sends its running
 estimate out with `jax.debug.callback` to `report`, which moves the bar (on
@@ -42,9 +42,9 @@ class _Shown:
 _POSTFIX = 40  # characters of the running estimate shown (an array's first components)
 
 
-def _open(total: int, done: int) -> tqdm:
+def _open(total: int, done: int, desc: str) -> tqdm:
     # (`file` is looked up now, so a redirected stderr, e.g. pytest's, gets the bar.)
-    return tqdm(total=total, initial=done, desc="integrate", unit="eval", unit_scale=True,
+    return tqdm(total=total, initial=done, desc=desc, unit="eval", unit_scale=True,
                 file=sys.stderr)
 
 
@@ -60,15 +60,15 @@ def _tracing() -> bool:
 
 
 @contextmanager
-def progress_bar(enabled: bool, total: int, done: int = 0) -> Iterator[None]:
+def progress_bar(enabled: bool, total: int, done: int = 0, desc: str = "integrate") -> Iterator[None]:
     """The bar around one streaming call outside `jit`: `done` of `total` evaluations
-    already spent. Does nothing when not `enabled` or under a `jit` trace."""
+    already spent; `desc` labels it. Does nothing when not `enabled` or under a `jit` trace."""
     if not enabled or _tracing():
         yield
         return
     with _Shown.lock:
         _close()  # a bar left open by a failed traced run
-        _Shown.bar, _Shown.done, _Shown.owned = _open(total, done), done, True
+        _Shown.bar, _Shown.done, _Shown.owned = _open(total, done, desc), done, True
     try:
         yield
     finally:
@@ -77,14 +77,15 @@ def progress_bar(enabled: bool, total: int, done: int = 0) -> Iterator[None]:
             _close()
 
 
-def report(mean, stderr, n, *, total: int, last: bool) -> None:
+def report(mean, stderr, n, *, total: int, last: bool, desc: str = "integrate") -> None:
     """The host side of the loop's `jax.debug.callback`: the streaming call has done `n` of
-    its `total` evaluations and estimates `mean` with error `stderr`; `last` after the loop."""
+    its `total` evaluations and estimates `mean` with error `stderr`; `last` after the loop;
+    `desc` labels a bar opened here (under `jit`)."""
     with _Shown.lock:
         if _Shown.bar is None:
             if last:  # (a batch of `vmap`ped runs: the first one closed the bar)
                 return
-            _Shown.bar = _open(total, 0)  # under `jit`: a bar for the streaming part
+            _Shown.bar = _open(total, 0, desc)  # under `jit`: a bar for the streaming part
         text = compact_array(mean, stderr)
         _Shown.bar.set_postfix_str(
             text if len(text) <= _POSTFIX else text[: _POSTFIX - 1] + "…", refresh=False

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_bounds, check_callable, check_count
-from ._integrand import evaluate
+from ._integrand import WithArgs, bind, evaluate
 
 
 # ---------------------------------------------------------------------------
@@ -69,8 +69,9 @@ def _tensor_rule(
     chunk: int,
     limit: int,
     even: bool = False,
+    args: Any = None,
 ) -> jax.Array:
-    f = check_callable(f)
+    f = check_callable(f, arguments=1 if args is None else 2)
     n = check_count(n, "n")
     if even and n % 2:
         raise ValueError(f"`n` must be even for Simpson's rule (pairs of intervals), got {n}.")
@@ -92,7 +93,9 @@ def _tensor_rule(
             "Carlo estimator such as jaxmc.uniform in this dimension."
         )
 
-    return _evaluate_rule(_ByIdentity(f), lo, hi, rule, n, batched, chunk)
+    # `args` enter as traced arguments (numbers as arrays: see `jaxmc._integrand.bind`).
+    args = None if args is None else bind(f, args).args
+    return _evaluate_rule(_ByIdentity(f), lo, hi, rule, n, batched, chunk, args)
 
 
 class _ByIdentity:
@@ -126,8 +129,9 @@ def _evaluate_rule(
     n: int,
     batched: bool,
     chunk: int,
+    args: Any,
 ) -> jax.Array:
-    f = wrapped.f
+    f = wrapped.f if args is None else WithArgs(wrapped.f, args)
     scalar = lo.ndim == 0
     d = 1 if scalar else lo.shape[0]
     t_np, w_np = rule(n)

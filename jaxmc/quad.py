@@ -78,6 +78,7 @@ def midpoint(
     *,
     batched: bool = False,
     chunk: int = _DEFAULT_CHUNK,
+    args: _Any = None,
 ) -> _jax.Array:
     r"""Composite midpoint (rectangle) rule, eq. 1 with $x_i$ the centres of $n$ cells.
 
@@ -97,6 +98,8 @@ def midpoint(
     - `batched`: if True, `f` receives a batch of points (`(k, d)` or `(k,)`,
       `k <= chunk`) and returns `(k, ...)`.
     - `chunk`: the largest number of points evaluated at once.
+    - `args`: parameters passed as `f(x, args)` when given; new values of the
+      same shapes reuse the compiled code.
 
     **Returns:** $\hat I$, an array with the shape of `f`'s output.
 
@@ -105,7 +108,8 @@ def midpoint(
     if `n` is not an int or `f` is not callable.
     """
     return _tensor_rule(
-        f, lo, hi, n, _midpoint_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS
+        f, lo, hi, n, _midpoint_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS,
+        args=args,
     )
 
 
@@ -117,6 +121,7 @@ def trapezoid(
     *,
     batched: bool = False,
     chunk: int = _DEFAULT_CHUNK,
+    args: _Any = None,
 ) -> _jax.Array:
     r"""Composite trapezoidal rule on $n$ intervals ($n + 1$ nodes per axis).
 
@@ -136,6 +141,8 @@ def trapezoid(
     - `batched`: if True, `f` receives a batch of points (`(k, d)` or `(k,)`,
       `k <= chunk`) and returns `(k, ...)`.
     - `chunk`: the largest number of points evaluated at once.
+    - `args`: parameters passed as `f(x, args)` when given; new values of the
+      same shapes reuse the compiled code.
 
     **Returns:** $\hat I$, an array with the shape of `f`'s output.
 
@@ -144,7 +151,8 @@ def trapezoid(
     if `n` is not an int or `f` is not callable.
     """
     return _tensor_rule(
-        f, lo, hi, n, _trapezoid_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS
+        f, lo, hi, n, _trapezoid_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS,
+        args=args,
     )
 
 
@@ -156,6 +164,7 @@ def simpson(
     *,
     batched: bool = False,
     chunk: int = _DEFAULT_CHUNK,
+    args: _Any = None,
 ) -> _jax.Array:
     r"""Composite Simpson rule on $n$ intervals ($n$ even, $n + 1$ nodes per axis).
 
@@ -177,6 +186,8 @@ def simpson(
     - `batched`: if True, `f` receives a batch of points (`(k, d)` or `(k,)`,
       `k <= chunk`) and returns `(k, ...)`.
     - `chunk`: the largest number of points evaluated at once.
+    - `args`: parameters passed as `f(x, args)` when given; new values of the
+      same shapes reuse the compiled code.
 
     **Returns:** $\hat I$, an array with the shape of `f`'s output.
 
@@ -185,7 +196,8 @@ def simpson(
     if `n` is not an int or `f` is not callable.
     """
     return _tensor_rule(
-        f, lo, hi, n, _simpson_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS, even=True
+        f, lo, hi, n, _simpson_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS,
+        even=True, args=args,
     )
 
 
@@ -197,6 +209,7 @@ def gauss_legendre(
     *,
     batched: bool = False,
     chunk: int = _DEFAULT_CHUNK,
+    args: _Any = None,
 ) -> _jax.Array:
     r"""Gauss–Legendre rule with $n$ points per axis.
 
@@ -220,6 +233,8 @@ def gauss_legendre(
     - `batched`: if True, `f` receives a batch of points (`(k, d)` or `(k,)`,
       `k <= chunk`) and returns `(k, ...)`.
     - `chunk`: the largest number of points evaluated at once.
+    - `args`: parameters passed as `f(x, args)` when given; new values of the
+      same shapes reuse the compiled code.
 
     **Returns:** $\hat I$, an array with the shape of `f`'s output.
 
@@ -228,5 +243,6 @@ def gauss_legendre(
     if `n` is not an int or `f` is not callable.
     """
     return _tensor_rule(
-        f, lo, hi, n, _gauss_legendre_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS
+        f, lo, hi, n, _gauss_legendre_rule, batched=batched, chunk=chunk, limit=MAX_EVALUATIONS,
+        args=args,
     )

@@ -161,3 +161,16 @@ def test_fit_and_adapt_reuse_their_compiled_code(key):
     chained, _ = jaxmc.fit.chain(key, bump, grid, [stage], args=SECOND)
     expected, _ = adapt(jax.random.fold_in(key, 0), bump, args=SECOND)
     assert_same((chained.mean, chained.variance), (expected.mean, expected.variance))
+
+
+@pytest.mark.parametrize("rule", [jaxmc.quad.midpoint, jaxmc.quad.gauss_legendre])
+def test_quadrature_takes_args_without_recompiling(rule):
+    f = lambda x, a: jnp.exp(a * jnp.sum(x))  # noqa: E731
+    lo, hi = jnp.zeros(2), jnp.ones(2)
+    first = rule(f, lo, hi, 8, args=0.5)
+    np.testing.assert_allclose(first, rule(lambda x: jnp.exp(0.5 * jnp.sum(x)), lo, hi, 8), rtol=1e-12)
+    with compilations() as compiled:
+        second = rule(f, lo, hi, 8, args=1.5)
+    assert not compiled, compiled
+    np.testing.assert_allclose(second, rule(lambda x: jnp.exp(1.5 * jnp.sum(x)), lo, hi, 8), rtol=1e-12)
+    np.testing.assert_allclose(second, ((math.exp(1.5) - 1) / 1.5) ** 2, rtol=1e-2)

@@ -168,3 +168,14 @@ def test_progress_bar_under_jit_stops_with_the_tolerance(capsys):
     assert bool(est.converged) and int(est.n) < 2**21
     assert "100%" not in final and str(est) in final
     assert f"/{2**21 / 1e6:.2f}M" in final
+
+
+def test_adapt_progress_bar(capfd):
+    f = lambda x: jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.02)  # noqa: E731
+    grid = jaxmc.proposals.Grid(jnp.zeros(2), jnp.ones(2), bins=16)
+    est, _ = jaxmc.fit.adapt(jax.random.key(0), f, grid, iterations=3, n_per_iteration=1000,
+                             progress=True)
+    err = capfd.readouterr().err
+    # One bar labelled `adapt`, at all 3 x 1000 evaluations, closed with a newline.
+    assert err.count("adapt:") >= 1 and "3.00k/3.00k" in err and err.endswith("\n")
+    assert compact(est.parts.mean[-1], est.parts.stderr[-1]) in err  # the last round's estimate

@@ -12,9 +12,18 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._checks import MAX_COUNT, check_callable, check_choice, check_count, check_key, is_concrete
+from .._checks import (
+    MAX_COUNT,
+    check_callable,
+    check_choice,
+    check_count,
+    check_flag,
+    check_key,
+    is_concrete,
+)
 from .._diagnostics import warn_if_unreliable
 from .._integrand import bind
+from .._progress import progress_bar
 from .._stats import Combined, Estimate, ReliabilityWarning, combine, estimate_fields
 from ..proposals import GaussianMixture, Grid, Partition, check_proposal
 from ._miser import PartitionGrowth
@@ -81,6 +90,7 @@ def adapt(
     batched: bool = False,
     rule: AbstractAdaptation | None = None,
     args: Any = None,
+    progress: bool = False,
 ) -> tuple[Combined, Any]:
     r"""Adaptive importance sampling in the style of vegas: sample, estimate, refit, combine.
 
@@ -146,6 +156,8 @@ def adapt(
       the options above choose for the proposal (`default_rule`).
     - `args`: parameters of `f` (any pytree); if given, `f` is called as
       `f(x, args)` (see `jaxmc.integrate`).
+    - `progress`: show a progress bar (tqdm, on stderr) with each round's
+      estimate (outside `jit`; under a user's `jit` the first round opens it).
 
     **Returns:** `(combined, proposal)` — a `Combined` and the adapted proposal.
 
@@ -191,9 +203,11 @@ def adapt(
         )
     elif not isinstance(rule, AbstractAdaptation):
         raise TypeError(f"`rule` must be an AbstractAdaptation, got {type(rule).__name__}.")
-    parts, state, _ = _compiled_adaptation(
-        rule, key, Integrand(f, batched), proposal, iterations, n
-    )
+    progress = check_flag(progress, "progress")
+    with progress_bar(progress, iterations * n, desc="adapt"):
+        parts, state, _ = _compiled_adaptation(
+            rule, key, Integrand(f, batched), proposal, iterations, n, progress=progress
+        )
     parts = jax.tree.map(lambda a: a[warmup:], parts)
     return _warn_if_rounds_disagree(combine(parts)), rule.proposal(state)
 

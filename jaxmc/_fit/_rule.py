@@ -13,6 +13,7 @@ refitting are each one class, and a new rule is a new class.
 from __future__ import annotations
 
 import abc
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from .._integrand import evaluate
+from .._progress import report
 from .._stats import Estimate
 
 
@@ -93,6 +95,11 @@ class AbstractAdaptation(eqx.Module):
         """The adapted proposal held by `state`."""
 
 
+def _report_round(mean, stderr, done, last, *, total: int) -> None:
+    """Host side: a round's estimate to the progress bar."""
+    report(mean, stderr, done, total=total, last=bool(last), desc="adapt")
+
+
 def run_adaptation(
     rule: AbstractAdaptation,
     key: jax.Array,
@@ -102,8 +109,10 @@ def run_adaptation(
     n: int,
     *,
     keep_samples: bool = False,
+    progress: bool = False,
 ) -> tuple[Estimate, Any, Samples | None]:
-    """`iterations` rounds of `rule` in one `lax.scan`.
+    """`iterations` rounds of `rule` in one `lax.scan` (with `progress`, each round's
+    estimate is sent to the progress bar, `jaxmc._progress.report`).
 
     **Returns:** the per-round estimates (stacked), the rule's final state
     (`rule.proposal(state)` is the adapted proposal), and, with `keep_samples`,
@@ -116,6 +125,9 @@ def run_adaptation(
     def round_(carry, i):
         new_state, est, samples = rule.step(key, i, eqx.combine(carry, static), integrand)
         new_carry, _ = eqx.partition(new_state, eqx.is_array)
+        if progress:  # (the last round closes a bar opened under a user's `jit`)
+            jax.debug.callback(functools.partial(_report_round, total=iterations * n),
+                               est.mean, est.stderr, (i + 1) * n, i == iterations - 1)
         return new_carry, (est, samples)
 
     if not keep_samples:
