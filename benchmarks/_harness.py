@@ -99,3 +99,13 @@ def optional_import(name: str) -> Any | None:
         return importlib.import_module(name)
     except ImportError:
         return None
+
+
+def pyplot(ctx: Any) -> Any | None:
+    """`matplotlib.pyplot` on the non-interactive Agg backend, or None (logged) if missing."""
+    matplotlib = optional_import("matplotlib")
+    if matplotlib is None:
+        ctx.log("matplotlib missing: no plot")
+        return None
+    matplotlib.use("Agg")
+    return importlib.import_module("matplotlib.pyplot")

@@ -46,7 +46,7 @@ import jax
 import numpy as np
 
 from . import problems
-from ._harness import Context, Result, markdown_table, optional_import, time_call
+from ._harness import Context, Result, markdown_table, optional_import, pyplot, time_call
 from .problems import Problem
 
 
@@ -220,12 +220,9 @@ def _geomean(values: list[float]) -> float:
 
 
 def _plot(ctx: Context, records: list[dict], budgets: tuple[int, ...]) -> str | None:
-    matplotlib = optional_import("matplotlib")
-    if matplotlib is None:
-        ctx.log("matplotlib missing: no plot")
+    plt = pyplot(ctx)
+    if plt is None:
         return None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     names = list(dict.fromkeys(r["case"] for r in records))
     fig, ax = plt.subplots(figsize=(max(6.0, 0.32 * len(names) + 2), 4.8))

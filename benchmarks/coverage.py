@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import problems
-from ._harness import Context, Result, markdown_table, optional_import
+from ._harness import Context, Result, markdown_table, pyplot
 from .problems import Problem
 
 
@@ -284,12 +284,9 @@ def _table(records: list[dict]) -> str:
 
 
 def _plot(ctx: Context, records: list[dict], methods: list[str], name: str) -> str | None:
-    matplotlib = optional_import("matplotlib")
-    if matplotlib is None:
-        ctx.log("matplotlib missing: no plot")
+    plt = pyplot(ctx)
+    if plt is None:
         return None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
     integrands = list(dict.fromkeys(r["integrand"] for r in records))

@@ -193,12 +193,16 @@ def test_grid_refine_vegas_rule(key):
     assert widths[-1] < widths[0] / 2
     # alpha = 0 flattens the weights: edges stay uniform.
     np.testing.assert_allclose(g.refine(x, w, alpha=0.0).edges, g.edges, atol=1e-12)
-    # Repeated refinement converges towards the optimal density 2x (CDF x^2), up to the
-    # rule's 1% defensive share, which widens the narrowest bins a little.
+    # Repeated refinement converges towards the optimal density 2x mixed with the rule's
+    # 1% defensive share, q = (2x + 0.01)/1.01 (CDF (x^2 + 0.01 x)/1.01). The smoothing of
+    # the bin weights keeps the first interior edge about 0.031 below it (the same on every
+    # key tried; the others are within 0.02); uniform edges would be 0.23 off.
     for i in range(10):
         x, p = g2.sample(jax.random.fold_in(key, i), 20_000)
         g2 = g2.refine(x, (2 * x / p) ** 2, alpha=0.5)
-    np.testing.assert_allclose(g2.edges[0], np.sqrt(np.linspace(0, 1, 9)), atol=0.04)
+    share, levels = 0.01, np.linspace(0, 1, 9) * 1.01
+    optimal = (-share + np.sqrt(share**2 + 4 * levels)) / 2
+    np.testing.assert_allclose(g2.edges[0], optimal, atol=0.035)
 
 
 def test_partition_cells_tile_the_box(key):
