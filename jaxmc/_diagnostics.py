@@ -41,6 +41,7 @@ __all__ = [
     "MIN_NONZERO",
     "MAX_PARETO_K",
     "MIN_Q",
+    "CONSERVATIVE_RATIO",
     "Tail",
     "ReliabilityWarning",
     "rounding_floor",
@@ -177,12 +178,15 @@ def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
 # Above this tail shape the values follow a power law (an unbounded integrand, or f/p with a
 # singular ratio): variance estimators from few replicas or pairs are skewed and too small.
 STRUCTURED_MAX_PARETO_K = 0.2
+# A bound this many times the structured variance is flagged as conservative: the error bar
+# is then an upper bound, not a standard error (2-sigma coverage 1.00 in the coverage suite).
+CONSERVATIVE_RATIO = 4.0
 
 
 @jax.jit
-def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> jax.Array:
-    r"""A structured variance estimate (replicas of a net, pairs in strata), made safe for
-    power-law tails.
+def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> tuple[jax.Array, jax.Array]:
+    r"""A structured variance estimate (replicas of a net, pairs in strata, antithetic
+    pairs), made safe for power-law tails; returns `(variance, conservative)`.
 
     Randomised QMC's variance comes from the $R - 1$ degrees of freedom of its
     replicas, a stratified one from pairs within each stratum. For an unbounded
@@ -192,12 +196,16 @@ def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> jax.Array
     variance of all contributions, $(\overline{c^2} - \bar c^2)/N$, is reported
     when larger: proportional stratification never has a larger variance, and a
     scrambled $(0, m, s)$-net at most a constant times it (Owen 1997), so it
-    bounds the error honestly (conservatively).
+    bounds the error honestly (conservatively). `conservative` says the bound is
+    at least `CONSERVATIVE_RATIO` times the structured estimate: the error bar is
+    then an upper bound, usually far above the actual error (a stratified
+    $x^{-1/3}$ covers 100% at 2 sigma), and `unreliable` says so.
     """
     count = jnp.maximum(t.count, 1)
     iid = jnp.maximum(t.sq_sum / count - mean**2, 0.0) / count
     heavy = pareto_k(t) > STRUCTURED_MAX_PARETO_K
-    return jnp.where(heavy, jnp.maximum(variance, iid), variance)
+    conservative = heavy & (iid > CONSERVATIVE_RATIO * variance)
+    return jnp.where(heavy, jnp.maximum(variance, iid), variance), conservative
 
 
 @jax.jit
@@ -270,8 +278,10 @@ def unreliable(est: Any) -> jax.Array:
 
     True when any component has a tiny effective sample size (< 10, or < n/4 for
     tiny n), fewer than 10 non-zero contributions (or fewer than n), a Pareto
-    $\\hat k$ above 0.7 with an effective sample size below n/10, dropped non-finite values;
-    for combined rounds a $q$ below 1e-3; for a tolerance run an unmet tolerance.
+    $\\hat k$ above 0.7 with an effective sample size below n/10, dropped non-finite values,
+    a structured variance replaced by a much larger i.i.d. bound (`bounded_variance`);
+    for combined rounds a $q$ below 1e-3 (for `integrate(method="adaptive")`, of the
+    stream against the grid's training rounds); for a tolerance run an unmet tolerance.
     Jittable and vmappable (map it over a batch of estimates).
     """
     return jnp.any(jnp.stack([jnp.any(flag) for flag in _flags(est).values()]))
@@ -294,8 +304,20 @@ def _flags(est: Any) -> dict[str, jax.Array]:
             (est.pareto_k > MAX_PARETO_K) & (est.ess < HEAVY_TAIL_ESS_SHARE * n)
         ),
     }
+    if hasattr(est, "conservative"):  # an Estimate (any duck-typed result without it: no flag)
+        flags[
+            "the values have a power-law tail, where the spread of replicas or strata "
+            "underestimates the error, and the i.i.d. bound reported instead is over "
+            f"{CONSERVATIVE_RATIO:g}x that spread: an upper bound, likely far above the actual "
+            "error"
+        ] = est.conservative
     if hasattr(est, "q"):
         flags[f"the combined rounds disagree (q < {MIN_Q:g})"] = est.q < MIN_Q
+    if getattr(est, "training_q", None) is not None:
+        flags[
+            f"the streamed estimate disagrees with the grid's training rounds (q < {MIN_Q:g}): "
+            "the frozen grid probably starves part of a peak"
+        ] = est.training_q < MIN_Q
     if getattr(est, "converged", None) is not None:
         flags["the tolerance was not met within the budget"] = ~jnp.asarray(est.converged)
     return flags

@@ -149,7 +149,7 @@ def estimate_repr(e, base: type) -> str:
 
     The mean, its standard error, `n` and the diagnostics that are known
     (`n_nonfinite` unless 0; `ess` and `pareto_k` unless NaN: an estimate built
-    by hand), then the fields `e` adds to `base` (`Estimate`): stacked parts by
+    by hand; `conservative` when true), then the fields `e` adds to `base` (`Estimate`): stacked parts by
     their number, a nested module by its name. Equinox's repr (shapes and dtypes)
     when some field is not concrete (a tracer in `jit`).
     """
@@ -162,6 +162,8 @@ def estimate_repr(e, base: type) -> str:
     for name, spec in (("ess", ".1f"), ("pareto_k", ".2f")):
         if not np.all(np.isnan(np.asarray(getattr(e, name), float))):
             text[name] = number(getattr(e, name), spec)
+    if np.any(np.asarray(getattr(e, "conservative", False))):
+        text["conservative"] = "True"
     own = {f.name for f in dataclasses.fields(base)}
     for name in (f.name for f in dataclasses.fields(e) if f.name not in own):
         value = getattr(e, name)
@@ -169,6 +171,9 @@ def estimate_repr(e, base: type) -> str:
             text[name] = f"{type(value).__name__}[{jnp.shape(value.n)[0]}]"
         elif isinstance(value, eqx.Module):
             text[name] = f"{type(value).__name__}(...)"
+        elif isinstance(value, bool):  # a static option: shown when set
+            if value:
+                text[name] = "True"
         elif value is not None:
             text[name] = repr(value) if isinstance(value, str) else number(value)
     return f"{type(e).__name__}({', '.join(f'{k}={v}' for k, v in text.items())})"

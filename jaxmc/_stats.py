@@ -20,13 +20,12 @@ never adds a small number to a huge one.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.scipy.special import gammaincc, ndtri
+from jax.scipy.special import ndtri
 
 from ._diagnostics import (
     ReliabilityWarning as ReliabilityWarning,
@@ -43,7 +42,7 @@ from ._diagnostics import (
     tail_of,
     unreliable as unreliable,
 )
-from ._format import estimate_repr, estimate_str, iteration_tables
+from ._format import estimate_repr, estimate_str
 
 
 class Estimate(eqx.Module):
@@ -68,6 +67,10 @@ class Estimate(eqx.Module):
     - `pareto_k`: the generalised Pareto shape $\hat k$ of the upper tail of
       $|c_i|$ (as in Pareto-smoothed importance sampling); the variance is
       finite only for $k < 1/2$, and above 0.7 the error bar cannot be trusted.
+    - `conservative`: the variance is not the estimator's own (the spread of
+      replicas, strata or antithetic pairs) but the i.i.d. variance of the
+      contributions, over 4 times larger, reported because a power-law tail
+      makes the spread unreliable: an upper bound (`bounded_variance`).
 
     `print(est)` shows the compact notation of vegas and gvar, `0.9977(42)` for
     0.99771 ± 0.00423 (element by element for an array); `repr(est)` the numbers.
@@ -80,6 +83,7 @@ class Estimate(eqx.Module):
     ess: jax.Array = eqx.field(default=float("nan"), kw_only=True)
     n_nonzero: jax.Array = eqx.field(default=-1, kw_only=True)
     pareto_k: jax.Array = eqx.field(default=float("nan"), kw_only=True)
+    conservative: jax.Array = eqx.field(default=False, kw_only=True)
 
     @property
     def stderr(self) -> jax.Array:
@@ -112,142 +116,15 @@ class Estimate(eqx.Module):
         return estimate_str(self)
 
 
-class Combined(Estimate):
-    r"""Inverse-variance weighted combination of independent estimates.
-
-    On top of `Estimate`'s fields: `chi2_dof`, the $\chi^2$ of the parts about
-    the combined mean per degree of freedom (near 1 when the parts agree within
-    their error bars), `q`, the probability that a $\chi^2$ variable with that
-    many degrees of freedom is at least as large (tiny $q$ means the parts
-    disagree, e.g. an adaptive density missed a peak), and `parts`, the inputs
-    stacked along a leading axis. Its `ess` and `n_nonzero` are the parts'
-    sums, its `pareto_k` the parts' average weighted as their means are.
-    """
-
-    chi2_dof: jax.Array
-    q: jax.Array
-    parts: Estimate
-
-    def summary(self) -> str:
-        """The parts (iterations) as a text table, like vegas's `summary()`.
-
-        One row per part: `itn`, its estimate, the weighted average of parts 1
-        to `itn` (`combine`: the last row's is this one) and that average's
-        `chi2/dof` and `Q`, numbers in the compact notation (`0.9977(42)`). An
-        array-valued estimate gets one table per component, headed by its
-        index, with the component's own `chi2/dof` and `Q` (`chi2_dof` here
-        sums over components). Outside `jit` only.
-        """
-        return iteration_tables(self, combine)
-
-
 def check_level(level: float) -> None:
     """A confidence level in (0, 1) (checked when concrete)."""
     if not isinstance(level, jax.core.Tracer) and not 0 < float(level) < 1:
         raise ValueError(f"`level` must be in (0, 1), got {level}.")
 
 
-def _stack(estimates: Estimate | Sequence[Estimate]) -> Estimate:
-    if isinstance(estimates, Estimate):
-        parts = estimates
-        if jnp.ndim(parts.n) != 1:
-            raise ValueError(
-                "`estimates` given as one Estimate must be stacked along a leading axis "
-                f"(e.g. from jax.vmap), got n of shape {jnp.shape(parts.n)}."
-            )
-        return _plain(parts)
-    estimates = list(estimates)
-    if not estimates or not all(isinstance(e, Estimate) for e in estimates):
-        raise TypeError("`estimates` must be a non-empty sequence of Estimate or a stacked Estimate.")
-    plain = [_plain(e) for e in estimates]
-    return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *plain)
-
-
 def estimate_fields(e: Estimate) -> dict[str, jax.Array]:
     """The `Estimate` fields of `e` (of any subclass), diagnostics included, by name."""
     return {f.name: getattr(e, f.name) for f in dataclasses.fields(Estimate)}
-
-
-def _plain(e: Estimate) -> Estimate:
-    return Estimate(**estimate_fields(e))
-
-
-def combine(estimates: Estimate | Sequence[Estimate]) -> Combined:
-    r"""Combine independent estimates of the same integral by inverse-variance weights.
-
-    With $w_i = 1/V_i$: $\bar I = \sum_i w_i I_i / \sum_i w_i$, $V = 1/\sum_i w_i$,
-    and $\chi^2 = \sum_i w_i (I_i - \bar I)^2$ with $k - 1$ degrees of freedom
-    ($k$ parts), as vegas reports across its iterations. For array-valued
-    estimates each component is combined on its own and the $\chi^2$ is summed
-    over components (with $(k-1)\cdot$size degrees of freedom).
-
-    Parts with zero variance need a rule, since $1/V$ is infinite:
-
-    - zero variance and a non-zero mean (every sample of $f/p$ equal: an exact
-      zero-variance density) is exact, and the exact parts get all the weight;
-    - zero variance and zero mean (every sample zero: e.g. an adaptive round
-      whose density missed the integrand's peak) carries no information and
-      gets no weight, rather than swallowing the others. If every part is like
-      that, the result is 0 with variance 0.
-
-    Only the parts with finite, positive variance enter the $\chi^2$, and the
-    degrees of freedom count them (one fewer than their number); a part with an
-    infinite or NaN variance gets no weight (if no part has any, the result is
-    NaN with infinite variance).
-
-    **Arguments:**
-
-    - `estimates`: a sequence of `Estimate`s, or one `Estimate` stacked along a
-      leading axis.
-
-    **Returns:** a `Combined`.
-    """
-    parts = _stack(estimates)
-    var = parts.variance
-    flat = var <= 0
-    empty = flat & (parts.mean == 0)
-    exact = flat & ~empty
-    any_exact = jnp.any(exact, axis=0)
-    measured = (var > 0) & jnp.isfinite(var)
-    # Exact parts share all the weight among themselves; otherwise inverse variances.
-    w = jnp.where(any_exact, exact, jnp.where(measured, 1.0 / jnp.where(measured, var, 1.0), 0.0))
-    w = w.astype(var.dtype)
-    wsum = jnp.sum(w, axis=0)
-    informative = wsum > 0
-    safe_wsum = jnp.where(informative, wsum, 1.0)
-    # No weight anywhere: all parts empty gives 0 +- 0; otherwise nothing is known.
-    all_empty = jnp.all(empty, axis=0)
-    unknown_mean = jnp.where(all_empty, 0.0, jnp.nan)
-    mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / safe_wsum, unknown_mean)
-    unknown_var = jnp.where(all_empty, 0.0, jnp.inf)
-    variance = jnp.where(any_exact, 0.0, jnp.where(informative, 1.0 / safe_wsum, unknown_var))
-    chi2_terms = jnp.where(measured, (parts.mean - mean) ** 2 / jnp.where(measured, var, 1.0), 0.0)
-    chi2 = jnp.sum(chi2_terms)
-    dof = jnp.sum(jnp.maximum(jnp.sum(measured, axis=0) - 1, 0)).astype(var.dtype)
-    has_dof = dof > 0
-    safe_dof = jnp.where(has_dof, dof, 1.0)
-    chi2_dof = jnp.where(has_dof, chi2 / safe_dof, 0.0)
-    q = jnp.where(has_dof, gammaincc(safe_dof / 2.0, chi2 / 2.0), 1.0)
-    # Diagnostics: effective sizes and non-zero counts add up; the tail shape is the
-    # weight-averaged one of the parts that carry weight.
-    # (Hand-built parts may carry the scalar defaults: broadcast them like the variances.)
-    ess, n_nonzero, part_k = (jnp.broadcast_to(_expand(a, var), var.shape)
-                              for a in (parts.ess, parts.n_nonzero, parts.pareto_k))
-    share = w / safe_wsum
-    weighted_k = jnp.sum(jnp.where(share > 0, share * part_k, 0.0), axis=0)
-    known = jnp.all(n_nonzero >= 0, axis=0)
-    return Combined(
-        mean=mean,
-        variance=variance,
-        n=jnp.sum(parts.n),
-        n_nonfinite=jnp.sum(parts.n_nonfinite),
-        ess=jnp.sum(ess, axis=0),
-        n_nonzero=jnp.where(known, jnp.sum(n_nonzero, axis=0), -1),
-        pareto_k=jnp.where(informative, weighted_k, jnp.nan),
-        chi2_dof=chi2_dof,
-        q=q,
-        parts=parts,
-    )
 
 
 class Moments(NamedTuple):
@@ -325,11 +202,17 @@ def empty_moments(shape: tuple[int, ...], dtype) -> Moments:
 
 
 def diagnosed(
-    mean: jax.Array, variance: jax.Array, n: jax.Array, n_nonfinite: jax.Array, tail: Tail
+    mean: jax.Array,
+    variance: jax.Array,
+    n: jax.Array,
+    n_nonfinite: jax.Array,
+    tail: Tail,
+    conservative: jax.Array | bool = False,
 ) -> dict[str, jax.Array]:
     """`Estimate`'s fields from a mean, its variance and the `Tail` of its contributions:
     the variance floored at the dtype's rounding error, and the diagnostics."""
     return dict(
+        conservative=jnp.broadcast_to(jnp.asarray(conservative), jnp.shape(mean)),
         mean=mean,
         variance=floored_variance(variance, tail),
         n=n,
@@ -434,7 +317,9 @@ def stratified_estimate(y, slot, counts, volume, n_nonfinite) -> tuple[Estimate,
     # The diagnostics are of the values y = f/p themselves: weighted by an uneven allocation
     # (VEGAS+) the contributions' spread would reflect the allocation, not a heavy tail.
     tail = tail_of(y)
-    variance = bounded_variance(variance, mean, tail)
+    # (For adaptive rounds `combine` flags the combination only when conservative rounds
+    # carry most of its weight: a young grid's round on a peak often is, and says little.)
+    variance, conservative = bounded_variance(variance, mean, tail)
     n = jnp.asarray(y.shape[0], jnp.int32)
-    est = Estimate(**diagnosed(mean, variance, n, n_nonfinite, tail))
+    est = Estimate(**diagnosed(mean, variance, n, n_nonfinite, tail, conservative))
     return est, var_h

@@ -10,6 +10,7 @@ the mergeable sufficient statistics `(count, mean, m2)` of a stream of values
 (Chan, Golub and LeVeque's update: `moments`, `merge`, `merge_all`).
 """
 
+from ._combine import Combined as Combined, combine as combine
 from ._diagnostics import (
     ReliabilityWarning as ReliabilityWarning,
     reliability_reasons as reliability_reasons,
@@ -17,10 +18,8 @@ from ._diagnostics import (
     unreliable as unreliable,
 )
 from ._stats import (
-    Combined as Combined,
     Estimate as Estimate,
     Moments as Moments,
-    combine as combine,
     merge as merge,
     merge_all as merge_all,
     moments as moments,

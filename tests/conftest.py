@@ -15,3 +15,12 @@ jax.config.update("jax_enable_x64", True)
 def key():
     """Deterministic key (seed 20261122); tests that need several split it."""
     return jax.random.key(20261122)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module: a worker running hundreds of
+    tests otherwise holds every executable it compiled (measured: 6.1 GB against 4.2 GB
+    peak on four modules, no slower), and two such workers came near the machine's memory."""
+    yield
+    jax.clear_caches()

@@ -181,13 +181,15 @@ def randomized_qmc(
     else:
         variance = jnp.full(mean.shape, jnp.inf, mean.dtype)
     tail = tail_of(y)
+    variance, conservative = bounded_variance(variance, mean, tail)
     return QMCEstimate(
         **diagnosed(
             mean,
-            bounded_variance(variance, mean, tail),
+            variance,
             jnp.asarray(n * replicas, dtype=jnp.int32),
             jnp.sum(bad, dtype=jnp.int32),
             tail,
+            conservative,
         ),
         replicas=replicas,
     )

@@ -152,11 +152,13 @@ def stratified(
         variance = jnp.full(mean.shape, jnp.inf, mean.dtype)
     # Equal strata with equal counts: every sample's contribution is its own value.
     tail = tail_of(y.reshape((cells * m,) + y.shape[2:]))
+    variance, conservative = bounded_variance(jnp.asarray(variance, mean.dtype), mean, tail)
     return Estimate(**diagnosed(
         mean,
-        bounded_variance(jnp.asarray(variance, mean.dtype), mean, tail),
+        variance,
         jnp.asarray(cells * m, dtype=jnp.int32),
         jnp.sum(bad, dtype=jnp.int32),
         tail,
+        conservative,
     ))
 
