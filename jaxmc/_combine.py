@@ -197,13 +197,3 @@ def _per_part(a: jax.Array, like: jax.Array) -> jax.Array:
     """Append unit axes so per-part scalars broadcast against per-part values."""
     return jnp.reshape(a, jnp.shape(a) + (1,) * (jnp.ndim(like) - jnp.ndim(a)))
 
-
-def agreement(a: Estimate, b: Estimate) -> jax.Array:
-    r"""$q = P(\chi^2_k \ge \sum (\bar a - \bar b)^2 / (V_a + V_b))$ for two independent
-    estimates of one integral, over the $k$ components where both variances are finite
-    and one is positive (1 where none is: nothing to compare)."""
-    var = a.variance + b.variance
-    usable = jnp.isfinite(var) & (var > 0)
-    chi2 = jnp.sum(jnp.where(usable, (a.mean - b.mean) ** 2 / jnp.where(usable, var, 1.0), 0.0))
-    dof = jnp.sum(usable).astype(chi2.dtype)
-    return jnp.where(dof > 0, gammaincc(jnp.maximum(dof, 1.0) / 2.0, chi2 / 2.0), 1.0)

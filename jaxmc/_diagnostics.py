@@ -280,8 +280,7 @@ def unreliable(est: Any) -> jax.Array:
     tiny n), fewer than 10 non-zero contributions (or fewer than n), a Pareto
     $\\hat k$ above 0.7 with an effective sample size below n/10, dropped non-finite values,
     a structured variance replaced by a much larger i.i.d. bound (`bounded_variance`);
-    for combined rounds a $q$ below 1e-3 (for `integrate(method="adaptive")`, of the
-    stream against the grid's training rounds); for a tolerance run an unmet tolerance.
+    for combined rounds a $q$ below 1e-3; for a tolerance run an unmet tolerance.
     Jittable and vmappable (map it over a batch of estimates).
     """
     return jnp.any(jnp.stack([jnp.any(flag) for flag in _flags(est).values()]))
@@ -313,11 +312,6 @@ def _flags(est: Any) -> dict[str, jax.Array]:
         ] = est.conservative
     if hasattr(est, "q"):
         flags[f"the combined rounds disagree (q < {MIN_Q:g})"] = est.q < MIN_Q
-    if getattr(est, "training_q", None) is not None:
-        flags[
-            f"the streamed estimate disagrees with the grid's training rounds (q < {MIN_Q:g}): "
-            "the frozen grid probably starves part of a peak"
-        ] = est.training_q < MIN_Q
     if getattr(est, "converged", None) is not None:
         flags["the tolerance was not met within the budget"] = ~jnp.asarray(est.converged)
     return flags

@@ -31,7 +31,6 @@ from .._checks import (
     check_key,
     is_concrete,
 )
-from .._combine import agreement, combine
 from .._diagnostics import warn_if_unreliable
 from .._fit._vegas import strata_per_axis
 from .._integrand import bind
@@ -60,17 +59,11 @@ class IntegrationEstimate(Estimate):
       `pilot.choice` holds it).
     - `pilot`: for `"auto"`, the pilot's per-candidate figures (`Pilot`), else `None`.
     - `converged`: with a tolerance, whether the standard error met it; else `None`.
-    - `training_q`: for `"adaptive"`, the probability $q$ of a disagreement at
-      least as large between the streamed estimate and the grid's later
-      training rounds (their `combine(..., sequential=True)`); below 1e-3 the
-      frozen grid probably starves part of a peak the training saw, and
-      `stats.unreliable` says so. Else `None`.
     """
 
     method: str = eqx.field(static=True)
     pilot: Pilot | None
     converged: jax.Array | None
-    training_q: jax.Array | None = None
 
 
 def integrate(
@@ -207,7 +200,7 @@ def integrate(
     run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,
                jnp.asarray(rtol if rtol is not None else 0.0, lo.dtype),
                jnp.asarray(atol if atol is not None else 0.0, lo.dtype))
-    pilot = training_q = None
+    pilot = None
     if method == "auto" and budget < _AUTO_MIN_BUDGET:
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
@@ -229,7 +222,7 @@ def integrate(
             est = jax.lax.switch(pilot.choice, branches)
         est = dataclasses.replace(est, n=est.n + spent)
     elif method == "adaptive":
-        est, training_q = run.adaptive(key, budget, Grid(lo, hi, bins=ADAPT_BINS))
+        est = run.adaptive(key, budget, Grid(lo, hi, bins=ADAPT_BINS))
     else:
         est = run.block_method(method, key, budget)
     converged = None
@@ -237,8 +230,7 @@ def integrate(
         tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
         converged = jnp.all(est.stderr <= tol)
     est = IntegrationEstimate(
-        **estimate_fields(est), method=method, pilot=pilot, converged=converged,
-        training_q=training_q,
+        **estimate_fields(est), method=method, pilot=pilot, converged=converged
     )
     if tolerant:
         est = _forward_mode_only(est)
@@ -253,11 +245,10 @@ def integrate(
             stacklevel=2,
         )
     # (Values dropped on request, with nonfinite="drop", are not news.)
-    # (The unmet tolerance has its own warning above.)
-    warn_if_unreliable(dataclasses.replace(
-        est, converged=None,
-        n_nonfinite=jnp.zeros_like(est.n_nonfinite) if nonfinite == "drop" else est.n_nonfinite,
-    ), "integrate")
+    fields = estimate_fields(est)
+    if nonfinite == "drop":
+        fields["n_nonfinite"] = jnp.zeros_like(est.n_nonfinite)
+    warn_if_unreliable(Estimate(**fields), "integrate")
     return est
 
 
@@ -292,14 +283,12 @@ class _Run:
         return self.block_method("qmc", key, budget, done)
 
     def adaptive(self, key, budget, grid, rounds=None):
-        """Train a VEGAS+ grid from `grid` (`_train_vegas_plus`), then stream rounds on it
-        frozen; returns the estimate and its agreement `q` with the later training rounds."""
+        """Train a VEGAS+ grid from `grid` (`_train_vegas_plus`), then stream rounds on it frozen."""
         block = _adaptive_block(budget)
         rounds = training_rounds(budget, block) if rounds is None else rounds
-        key, frozen, trained, parts = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
+        key, frozen, trained = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
         est = self.frozen_grid(key, budget - trained, frozen, block, trained)
-        later = combine(jax.tree.map(lambda a: a[rounds // 2:], parts), sequential=True)
-        return dataclasses.replace(est, n=est.n + trained), agreement(est, later)
+        return dataclasses.replace(est, n=est.n + trained)
 
     def frozen_grid(self, key, budget, frozen, block, done=0):
         """Stream VEGAS+ rounds of `block` points on a frozen `(grid, counts, strata)`."""
@@ -337,8 +326,8 @@ def _train_vegas_plus(key, f, grid, rounds, block, batched):
     stays unbiased.
     """
     train_key, key = jax.random.split(key)
-    parts, state, _ = run_adaptation(VegasPlus(), train_key, Integrand(f, batched), grid, rounds, block)
-    return key, frozen_vegas_plus(state, block), rounds * block, parts
+    _, state, _ = run_adaptation(VegasPlus(), train_key, Integrand(f, batched), grid, rounds, block)
+    return key, frozen_vegas_plus(state, block), rounds * block
 
 
 def frozen_vegas_plus(state, block: int):
