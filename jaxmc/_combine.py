@@ -86,7 +86,7 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     before round $i$ drew its samples, so that $\sum_i w_i (I_i - I)$ is a
     martingale with mean zero (the first measured round, with nothing before
     it, is weighted by its own variance). What bias is left comes from dividing
-    by $\sum_i w_i$: on the thin shell +1.4% (2σ coverage 0.27 → 0.88), and on
+    by $\sum_i w_i$: on the thin shell +1.4% (2σ coverage 0.27 → 0.81), and on
     exponential parts whose variance is their square +3% against −81%. Then
     $V = \sum_i w_i^2 V_i / (\sum_i w_i)^2$.
 
