@@ -127,7 +127,12 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     # A part whose mean a handful of values carried has a variance that means nothing (a
     # round that grazed a peak's far tail: 2e-141 +- 2e-141 for an integral of 1); while
     # any part is better measured, it gets no weight and lends none.
-    ess, n = (jnp.broadcast_to(_per_part(a, var), var.shape) for a in (parts.ess, parts.n))
+    # Per-part figures as arrays like the variances (hand-built parts may carry the scalar
+    # defaults of the diagnostics).
+    ess, n, n_nonzero, part_k, bounded = (
+        _per_part(a, var)
+        for a in (parts.ess, parts.n, parts.n_nonzero, parts.pareto_k, parts.conservative)
+    )
     grazed = ess < jnp.minimum(MIN_ESS, n / 4)  # (NaN, unknown, is not grazed)
     trusted = measured & ~grazed
     measured = jnp.where(jnp.any(trusted, axis=0), trusted, measured)
@@ -157,15 +162,11 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     q = jnp.where(has_dof, gammaincc(safe_dof / 2.0, chi2 / 2.0), 1.0)
     # Diagnostics: effective sizes and non-zero counts add up; the tail shape is the
     # weight-averaged one of the parts that carry weight.
-    # (Hand-built parts may carry the scalar defaults: broadcast them like the variances.)
-    ess, n_nonzero, part_k = (jnp.broadcast_to(_per_part(a, var), var.shape)
-                              for a in (parts.ess, parts.n_nonzero, parts.pareto_k))
     share = w / safe_wsum
     weighted_k = jnp.sum(jnp.where(share > 0, share * part_k, 0.0), axis=0)
     known = jnp.all(n_nonzero >= 0, axis=0)
     # Conservative when the parts that carry most of the weight are (a young grid's round
     # may be, on a peak, without saying much of the combination).
-    bounded = jnp.broadcast_to(_per_part(parts.conservative, var), var.shape)
     return Combined(
         mean=mean,
         variance=variance,
@@ -194,6 +195,7 @@ def _previous_measured(var: jax.Array, measured: jax.Array) -> jax.Array:
 
 
 def _per_part(a: jax.Array, like: jax.Array) -> jax.Array:
-    """Append unit axes so per-part scalars broadcast against per-part values."""
-    return jnp.reshape(a, jnp.shape(a) + (1,) * (jnp.ndim(like) - jnp.ndim(a)))
+    """`a`, one value per part (or per part and component), broadcast to `like`'s shape."""
+    return jnp.broadcast_to(jnp.reshape(a, jnp.shape(a) + (1,) * (jnp.ndim(like) - jnp.ndim(a))),
+                            jnp.shape(like))
 
