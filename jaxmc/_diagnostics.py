@@ -106,12 +106,27 @@ class Tail(NamedTuple):
 
 
 def _largest(a: jax.Array, axis: int) -> jax.Array:
-    """The `TAIL + 1` largest entries along `axis`, moved last, decreasing (zero padded)."""
+    r"""The `TAIL + 1` largest entries of `a >= 0` along `axis`, moved last, decreasing (zero padded).
+
+    Wider than float32, the entries are ranked by $\log(a/\max a)$ in float32 and
+    the chosen ones gathered at full precision and sorted: XLA's CPU `top_k` is
+    a partial selection in float32 but a full sort in float64 (2.5 ms against
+    0.05 ms for 2^14 values, 6x the cost of a QMC block). The logarithm keeps
+    the whole float64 range apart; two entries can swap ranks only when they
+    differ by less than about $6\cdot10^{-8}\,|\log(a/\max a)|$ relative, where
+    the Pareto fit learns nothing from the difference.
+    """
     a = jnp.moveaxis(a, axis, -1)
     short = TAIL + 1 - a.shape[-1]
     if short > 0:
         a = jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (short,), a.dtype)], axis=-1)
-    return jax.lax.top_k(a, TAIL + 1)[0]
+    if jnp.finfo(a.dtype).bits <= 32:
+        return jax.lax.top_k(a, TAIL + 1)[0]
+    scale = jnp.max(a, axis=-1, keepdims=True)
+    ranks = jnp.log(a / jnp.where(scale > 0, scale, 1)).astype(jnp.float32)
+    _, index = jax.lax.top_k(ranks, TAIL + 1)
+    top = jnp.take_along_axis(a, index, axis=-1)
+    return -jnp.sort(-top, axis=-1)
 
 
 @jax.jit

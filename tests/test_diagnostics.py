@@ -55,6 +55,22 @@ def test_tails_merge_exactly():
     assert whole.top.shape == (2, TAIL + 1)
 
 
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_tail_keeps_the_largest_values_exactly(dtype):
+    # float64 values are ranked in float32 (a full sort otherwise): the kept values must
+    # still be the largest, in full precision, decreasing; with values spanning 1e300,
+    # values that differ only beyond float32's precision, zeros and fewer values than kept.
+    rng = np.random.default_rng(3)
+    wide = rng.pareto(0.05, 5000) if dtype == jnp.float64 else rng.pareto(0.5, 5000)
+    close = 1.0 + rng.integers(0, 50, 5000) * 1e-12 if dtype == jnp.float64 else rng.random(5000)
+    sparse = np.where(rng.random(5000) < 0.01, rng.random(5000), 0.0)
+    for c in (wide, close, -wide, sparse, rng.random(40)):
+        top = np.asarray(tail_of(jnp.asarray(c, dtype)).top)
+        expected = np.sort(np.abs(np.asarray(c, dtype)))[::-1][: TAIL + 1]
+        np.testing.assert_array_equal(top[: expected.size], expected)
+        assert np.all(top[expected.size :] == 0)
+
 def test_ess_and_nonzero_count():
     est = jaxmc.uniform(jax.random.key(0), lambda x: 2.0, 0.0, 1.0, 1000)
     assert float(est.ess) == pytest.approx(1000, rel=1e-5)
