@@ -277,6 +277,9 @@ def _run(ctx: Context) -> Result:
                     results[lib] = _measure(
                         callers[lib](problem, n), seeds, problem.exact, compiles=lib == "jaxmc"
                     )
+            # Each case compiles its own programs; dropping them keeps a long run under the
+            # kernel's limit on memory mappings (LLVM: "Cannot allocate memory" after ~60 cases).
+            jax.clear_caches()
             ratio = _ratio(results)
             jx = results["jaxmc"]
             method = jx.get("note", "error: " + jx.get("error", ""))

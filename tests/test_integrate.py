@@ -1,5 +1,6 @@
 """The streaming driver `integrate`."""
 
+import math
 import os
 import subprocess
 import sys
@@ -218,6 +219,20 @@ def test_adaptive_method_fits_a_grid_and_stays_unbiased():
     assert adaptive.stderr < plain.stderr / 50
     with pytest.raises(ValueError, match="adaptive"):
         jaxmc.integrate(key, f, jnp.zeros(4), jnp.ones(4), n=1000, method="adaptive")
+
+
+def test_adaptive_rounds_keep_adapting_after_training():
+    """The 10-D ball of radius 0.45 (0.09% of the cube) at 1e5 evaluations: a grid frozen
+    after its training rounds left a relative error of 0.18-0.25 (plain Monte Carlo: 0.11,
+    vegas: 0.024); rounds that keep refining it, combined, measured 0.008 over 32 keys."""
+    d, r = 10, 0.45
+    f = lambda x: (jnp.sum((x - 0.5) ** 2) <= r**2).astype(x.dtype)
+    exact = np.pi ** (d / 2) / math.gamma(d / 2 + 1) * r**d
+    est = run_keys(lambda k: jaxmc.integrate(k, f, jnp.zeros(d), jnp.ones(d), n=100_000,
+                                             method="adaptive"), 6, k=8)
+    relerr = np.asarray(est.mean) / exact - 1
+    assert np.sqrt(np.mean(relerr**2)) < 0.03, relerr
+    assert np.mean(np.abs(relerr) < 3 * np.asarray(est.stderr) / exact) >= 0.75
 
 
 def _posterior(d=5, width=0.02, rho=0.7):

@@ -27,8 +27,9 @@ The candidates:
   discontinuity, to 1000x better, on a 5-D posterior), so the grid is dropped
   after `SCREEN_ROUNDS` rounds only when it is `SCREEN_MARGIN` times costlier
   than a QMC pilot that measured the integrand; otherwise it trains in full
-  and the choice is made on the trained grid. If the grid wins it streams on,
-  frozen; if QMC wins, the training was the price of knowing.
+  and the choice is made on the trained grid. If the grid wins it goes on
+  as `method="adaptive"` does after training (refining rounds, then with a
+  tolerance a frozen stream); if QMC wins, the training was the price of knowing.
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
 readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
@@ -51,13 +52,10 @@ from .._box import to_box
 from .._checks import is_concrete
 from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
-from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
+from ..fit import Integrand, VegasPlus, run_adaptation
 from ..proposals import Grid
 from ._stream import QMC_REPLICAS, final_net, replica_points
 
-
-# Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
-run_adaptation = eqx.filter_jit(_run_adaptation)
 
 CANDIDATES = ("qmc", "adaptive")
 PILOT_SHARE = 1 / 16  # at most this share of the budget on the QMC pilot
@@ -152,7 +150,7 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 def _grid_rounds(key, grid, *, f, rounds, round_size, batched):
     """`rounds` VEGAS+ rounds from `grid`: the last round's relative variance per
     evaluation, whether it saw only zeros, and the trained state."""
-    parts, state, _ = _run_adaptation(
+    parts, state, _ = run_adaptation(
         VegasPlus(), key, Integrand(f, batched), grid, rounds, round_size
     )
     v_last = _relative_variance(parts.mean[-1], parts.variance[-1]) * round_size

@@ -9,7 +9,6 @@ VEGAS+ grid of `"adaptive"`), and labels the result with the method used.
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -32,18 +31,24 @@ from .._checks import (
     is_concrete,
 )
 from .._diagnostics import warn_if_unreliable
-from .._fit._vegas import strata_per_axis
 from .._integrand import bind
 from .._progress import progress_bar
 from .._stats import Estimate, ReliabilityWarning, estimate_fields, rounding_floor
-from ..fit import Integrand, VegasPlus
 from ..proposals import Grid
-from ._auto import GRID_BINS, Pilot, run_adaptation, run_pilot
-from ._stream import BLOCK, plan, stream_on_mesh
+from ._adaptive import (
+    MIN_STREAM_BLOCKS,
+    adaptive_block,
+    frozen_vegas_plus,
+    refine,
+    refining_rounds,
+    train_vegas_plus,
+    training_rounds,
+)
+from ._auto import GRID_BINS, Pilot, run_pilot
+from ._stream import plan, stream_on_mesh
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
-ADAPT_ITERATIONS = 10  # VEGAS+ rounds that train the grid for method="adaptive" (at most)
 ADAPT_BINS = GRID_BINS  # grid bins per axis for method="adaptive"
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
 MAX_N = 1 << 30  # default budget when only a tolerance is given
@@ -121,11 +126,17 @@ def integrate(
           91% at $R = 8$). On smooth integrands the error falls like $n^{-1}$
           or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
           than plain MC (Owen's scrambled nets), in any dimension.
-        - `"adaptive"`: VEGAS+: a `Grid` and its stratification trained by
-          `jaxmc.fit.VegasPlus` for up to ten rounds on at most a quarter of
-          the budget, then each block one VEGAS+ round (about budget/40 points,
-          a power of two from 256 to $2^{14}$) on the frozen grid and
-          allocation; the budget is rounded down to whole rounds.
+        - `"adaptive"`: VEGAS+ (`jaxmc.fit.VegasPlus`) in rounds of about
+          budget/40 points (a power of two from 256 to $2^{14}$; the budget is
+          rounded down to whole rounds): up to ten rounds on at most a quarter
+          of the budget train a `Grid` and its stratification and are
+          discarded; the rest of the rounds go on adapting, as vegas's do, and
+          are combined (`jaxmc.stats.combine(..., sequential=True,
+          spread=True)`: each round weighted by the inverse variance the round
+          before it predicts, the error bar from their scatter). With a
+          tolerance, after 32 such rounds the last grid streams on frozen
+          (sharded over devices) and that stream alone gives the result. See
+          `jaxmc/_estimators/_adaptive.py`.
         - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
           jittered grid; variance from the spread of block means).
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
@@ -205,15 +216,15 @@ def integrate(
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
         pilot_key, key = jax.random.split(key)
-        block = _adaptive_block(budget)
+        block = adaptive_block(budget)
         rounds = training_rounds(budget, block)
         pilot, state = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds, block)
         spent = sum(pilot.evaluations)
         rest = budget - spent
         branches = (
             lambda: run.qmc(key, rest, spent),
-            # The pilot trained the grid in full: stream on it frozen.
-            lambda: run.frozen_grid(key, rest, frozen_vegas_plus(state, block), block, spent),
+            # The pilot trained the grid in full: refine and stream on it.
+            lambda: run.trained_grid(key, rest, state, block, spent),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -282,58 +293,36 @@ class _Run:
     def qmc(self, key, budget, done=0):
         return self.block_method("qmc", key, budget, done)
 
-    def adaptive(self, key, budget, grid, rounds=None):
-        """Train a VEGAS+ grid from `grid` (`_train_vegas_plus`), then stream rounds on it frozen."""
-        block = _adaptive_block(budget)
-        rounds = training_rounds(budget, block) if rounds is None else rounds
-        key, frozen, trained = _train_vegas_plus(key, self.f, grid, rounds, block, self.batched)
-        est = self.frozen_grid(key, budget - trained, frozen, block, trained)
-        return dataclasses.replace(est, n=est.n + trained)
+    def adaptive(self, key, budget, grid):
+        """Train a VEGAS+ grid from `grid`, then refine and stream on it (`_adaptive`)."""
+        block = adaptive_block(budget)
+        rounds = training_rounds(budget, block)
+        train_key, key = jax.random.split(key)
+        state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
+        est = self.trained_grid(key, budget - rounds * block, state, block, rounds * block)
+        return dataclasses.replace(est, n=est.n + rounds * block)
 
-    def frozen_grid(self, key, budget, frozen, block, done=0):
-        """Stream VEGAS+ rounds of `block` points on a frozen `(grid, counts, strata)`."""
-        run_plan = plan("adaptive", budget, self.chunk, self.mesh.size, self.d, block)
-        return self._stream(key, frozen, run_plan, done)
+    def trained_grid(self, key, budget, state, block, done=0):
+        """Refining rounds from a trained VEGAS+ `state`; with a tolerance they did not
+        meet, a frozen stream after them (`_adaptive`)."""
+        refine_key, key = jax.random.split(key)
+        rounds = refining_rounds(budget, block, self.tolerant)
+        refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
+                                batched=self.batched, rounds=rounds, tolerant=self.tolerant)
+        refined = Estimate(**estimate_fields(refined))
+        rest = budget - rounds * block
+        if not self.tolerant or rest < MIN_STREAM_BLOCKS * block:
+            return refined
 
+        def streamed():
+            run_plan = plan("adaptive", rest, self.chunk, self.mesh.size, self.d, block)
+            est = self._stream(key, frozen_vegas_plus(state, block), run_plan, done + rounds * block)
+            return dataclasses.replace(est, n=est.n + refined.n)
 
-def _adaptive_block(budget: int) -> int:
-    """Points per VEGAS+ round of method="adaptive": about budget/40 as a power of two, 256 to 2^14.
-
-    Small rounds let the grid train for its ten rounds on a quarter of the budget
-    (measured on vegas's 4-D Gaussian at 1e5: rounds of 2^11 halve the error of
-    rounds of 2^12); beyond 2^14 larger rounds gained nothing.
-    """
-    if budget < 16 * 256:
-        raise ValueError(f"method='adaptive' needs a budget of at least {16 * 256}, got {budget}.")
-    return min(BLOCK, max(256, 1 << int(math.floor(math.log2(budget // 40)))))
-
-
-def training_rounds(budget: int, block: int) -> int:
-    """VEGAS+ training rounds of `block` points for a budget: up to a quarter of it, 2 to `ADAPT_ITERATIONS`."""
-    return max(2, min(ADAPT_ITERATIONS, budget // (4 * block)))
-
-
-def _train_vegas_plus(key, f, grid, rounds, block, batched):
-    r"""Train a VEGAS+ grid and stratification for `rounds` rounds (`training_rounds`).
-
-    Rounds of `block` points (`jaxmc.fit.VegasPlus`:
-    grid refinement and adaptive stratified sampling of the map's unit cube),
-    starting from `grid`. Returns the streaming key, the frozen
-    `(grid, counts, strata)` — the grid, the points per hypercube its last round
-    allocated for the next, and the hypercubes per axis — and the number of
-    training evaluations. Those are counted in the result's `n` but not in its
-    mean, so the streamed estimate, drawn with the frozen grid and allocation,
-    stays unbiased.
-    """
-    train_key, key = jax.random.split(key)
-    _, state, _ = run_adaptation(VegasPlus(), train_key, Integrand(f, batched), grid, rounds, block)
-    return key, frozen_vegas_plus(state, block), rounds * block
-
-
-def frozen_vegas_plus(state, block: int):
-    """What streaming needs of a trained VEGAS+ state: the grid, the points per hypercube
-    its last round allocated for the next, and the hypercubes per axis."""
-    return state.grid, state.draw.counts, strata_per_axis(state.grid.dim, block, VegasPlus().max_strata)
+        met = jnp.all(refined.stderr <= jnp.maximum(self.atol, self.rtol * jnp.abs(refined.mean)))
+        if is_concrete(met):
+            return refined if bool(met) else streamed()
+        return jax.lax.cond(met, lambda: refined, streamed)
 
 
 def _blocks_mesh(mesh: Mesh | None) -> Mesh | AbstractMesh:

@@ -1,0 +1,142 @@
+r"""`integrate(method="adaptive")`: a VEGAS+ grid trained, refined as it is used, then streamed.
+
+Three stages of VEGAS+ rounds (`jaxmc.fit.VegasPlus`) of one size, `adaptive_block`:
+
+1. **Training**: `training_rounds` rounds (at most a quarter of the budget)
+   adapt the grid from uniform; their estimates are discarded.
+2. **Refining**: the rest of a fixed budget (with a tolerance, up to
+   `MAX_REFINE_ROUNDS` rounds) goes to rounds that each estimate the integral
+   and go on refining the grid and the allocation for the next, as vegas adapts
+   through the iterations it reports. Their estimates are combined with the
+   sequential weights of `jaxmc.stats.combine(..., sequential=True)`: round $i$
+   by the inverse variance the round before it predicts, a figure fixed before
+   round $i$ drew, so the combination stays unbiased where weights from each
+   round's own variance would favour the rounds that came out low; its
+   variance comes from the rounds' scatter (`spread=True`), as a frozen
+   stream's comes from its rounds' spread, not from the rounds' own error
+   bars, which are i.i.d. bounds when $f/p$ has a power-law tail. Measured at
+   $10^5$ evaluations on the 10-D ball indicator: relative error 0.18 on a grid
+   frozen after training, 0.008 adapting (vegas: 0.024).
+3. **Streaming**, with a tolerance the refining rounds did not meet: the last
+   grid, frozen, streams until the tolerance or the budget (sharded over
+   devices, `_stream`); the result is that stream's estimate alone (the
+   refining rounds count in `n` but not in the mean), whose fresh randomness
+   keeps it unbiased whatever the rounds before it showed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._combine import combine
+from .._fit._vegas import strata_per_axis
+from .._stats import Estimate, estimate_fields
+from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
+from ._stream import BLOCK
+
+
+# Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
+run_adaptation = eqx.filter_jit(_run_adaptation)
+
+TRAINING_ROUNDS = 10  # VEGAS+ rounds that train the grid, at most (discarded)
+MAX_REFINE_ROUNDS = 32  # with a tolerance, adapting rounds after training; then a frozen stream
+MIN_STREAM_BLOCKS = 8  # a frozen stream's variance comes from the spread of its rounds
+MIN_ROUNDS_TO_STOP = 8  # ... as the refining rounds' does: fewer cannot meet a tolerance
+
+
+def adaptive_block(budget: int) -> int:
+    """Points per VEGAS+ round: about budget/40 as a power of two, 256 to 2^14.
+
+    Small rounds let the grid train for its ten rounds on a quarter of the budget
+    (measured on vegas's 4-D Gaussian at 1e5: rounds of 2^11 halve the error of
+    rounds of 2^12); beyond 2^14 larger rounds gained nothing.
+    """
+    if budget < 16 * 256:
+        raise ValueError(f"method='adaptive' needs a budget of at least {16 * 256}, got {budget}.")
+    return min(BLOCK, max(256, 1 << int(math.floor(math.log2(budget // 40)))))
+
+
+def training_rounds(budget: int, block: int) -> int:
+    """Training rounds of `block` points for a budget: up to a quarter of it, 2 to `TRAINING_ROUNDS`."""
+    return max(2, min(TRAINING_ROUNDS, budget // (4 * block)))
+
+
+def refining_rounds(budget: int, block: int, tolerant: bool) -> int:
+    """Refining rounds of `block` points in what the training left of the budget: all of
+    it for a fixed budget; with a tolerance at most `MAX_REFINE_ROUNDS` (the rest streams
+    on), or all of it when a stream would be too short."""
+    rounds = budget // block
+    if not tolerant or rounds < MAX_REFINE_ROUNDS + MIN_STREAM_BLOCKS:
+        return rounds
+    return MAX_REFINE_ROUNDS
+
+
+def train_vegas_plus(key, f, grid, rounds, block, batched):
+    """`rounds` VEGAS+ rounds of `block` points from `grid`: the trained state (estimates discarded)."""
+    _, state, _ = run_adaptation(VegasPlus(), key, Integrand(f, batched), grid, rounds, block)
+    return state
+
+
+def frozen_vegas_plus(state, block: int):
+    """What streaming needs of a VEGAS+ state: the grid, the points per hypercube
+    its last round allocated for the next, and the hypercubes per axis."""
+    return state.grid, state.draw.counts, strata_per_axis(state.grid.dim, block, VegasPlus().max_strata)
+
+
+def _empty_parts(like: Estimate, rounds: int) -> Estimate:
+    """`rounds` placeholder parts that `combine` gives no weight (infinite variance, n = 0)."""
+
+    def empty(a, fill):
+        a = jnp.asarray(a)
+        return jnp.full((rounds,) + a.shape, fill, a.dtype)
+
+    return Estimate(
+        mean=empty(like.mean, 0), variance=empty(like.variance, jnp.inf), n=empty(like.n, 0),
+        n_nonfinite=empty(like.n_nonfinite, 0), ess=empty(like.ess, 0),
+        n_nonzero=empty(like.n_nonzero, 0), pareto_k=empty(like.pareto_k, jnp.nan),
+        conservative=empty(like.conservative, False),
+    )
+
+
+@eqx.filter_jit
+def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant):
+    """Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, combined sequentially.
+
+    Without a tolerance all `rounds` run (a `scan`); with one, the rounds stop
+    once the combination's standard error meets $\\max(atol, rtol\\,|mean|)$,
+    after at least `MIN_ROUNDS_TO_STOP` rounds.
+    Returns the combination (`Combined`, its `parts` the rounds run, the rest
+    placeholders with no weight) and the final state.
+    """
+    rule, integrand = VegasPlus(), Integrand(f, batched)
+    carry, static = eqx.partition(state, eqx.is_array)
+
+    def one_round(carry, i):
+        new_state, est, _ = rule.step(key, i, eqx.combine(carry, static), integrand)
+        return eqx.partition(new_state, eqx.is_array)[0], Estimate(**estimate_fields(est))
+
+    if not tolerant:
+        carry, parts = jax.lax.scan(one_round, carry, jnp.arange(rounds))
+        return combine(parts, sequential=True, spread=True), eqx.combine(carry, static)
+
+    shape = jax.eval_shape(lambda c: one_round(c, jnp.int32(0))[1], carry)
+    empty = _empty_parts(jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape), rounds)
+
+    def met(parts):
+        est = combine(parts, sequential=True, spread=True)
+        return jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
+
+    def body(loop):
+        i, carry, parts, _ = loop
+        carry, est = one_round(carry, i)
+        parts = jax.tree.map(lambda buffer, x: buffer.at[i].set(x), parts, est)
+        return i + 1, carry, parts, met(parts) & (i + 1 >= MIN_ROUNDS_TO_STOP)
+
+    _, carry, parts, _ = jax.lax.while_loop(
+        lambda loop: (loop[0] < rounds) & ~loop[3], body, (jnp.int32(0), carry, empty, False)
+    )
+    return combine(parts, sequential=True, spread=True), eqx.combine(carry, static)
