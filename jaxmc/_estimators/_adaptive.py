@@ -26,6 +26,7 @@ Three stages of VEGAS+ rounds (`jaxmc.fit.VegasPlus`) of one size, `adaptive_blo
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -34,6 +35,7 @@ import jax.numpy as jnp
 
 from .._combine import combine
 from .._fit._vegas import strata_per_axis
+from .._progress import report
 from .._stats import Estimate, estimate_fields
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
 from ._stream import BLOCK
@@ -102,21 +104,31 @@ def _empty_parts(like: Estimate, rounds: int) -> Estimate:
     )
 
 
+def _report_round(mean, stderr, done, last, *, total: int) -> None:
+    """Host side: a refining round's estimate to the progress bar."""
+    report(mean, stderr, done, total=total, last=bool(last))
+
+
 @eqx.filter_jit
-def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant):
+def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=False):
     """Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, combined sequentially.
 
     Without a tolerance all `rounds` run (a `scan`); with one, the rounds stop
     once the combination's standard error meets $\\max(atol, rtol\\,|mean|)$,
     after at least `MIN_ROUNDS_TO_STOP` rounds.
     Returns the combination (`Combined`, its `parts` the rounds run, the rest
-    placeholders with no weight) and the final state.
+    placeholders with no weight) and the final state. With `progress`, each
+    round's estimate goes to the progress bar (as `jaxmc.fit.adapt` shows them).
     """
     rule, integrand = VegasPlus(), Integrand(f, batched)
     carry, static = eqx.partition(state, eqx.is_array)
 
     def one_round(carry, i):
         new_state, est, _ = rule.step(key, i, eqx.combine(carry, static), integrand)
+        if progress:
+            n = state.draw.u.shape[0]
+            jax.debug.callback(functools.partial(_report_round, total=rounds * n),
+                               est.mean, est.stderr, (i + 1) * n, i == rounds - 1)
         return eqx.partition(new_state, eqx.is_array)[0], Estimate(**estimate_fields(est))
 
     if not tolerant:

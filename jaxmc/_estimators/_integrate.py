@@ -307,8 +307,10 @@ class _Run:
         meet, a frozen stream after them (`_adaptive`)."""
         refine_key, key = jax.random.split(key)
         rounds = refining_rounds(budget, block, self.tolerant)
-        refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
-                                batched=self.batched, rounds=rounds, tolerant=self.tolerant)
+        with progress_bar(self.progress, done + rounds * block, done):
+            refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
+                                    batched=self.batched, rounds=rounds, tolerant=self.tolerant,
+                                    progress=self.progress)
         refined = Estimate(**estimate_fields(refined))
         rest = budget - rounds * block
         if not self.tolerant or rest < MIN_STREAM_BLOCKS * block:
