@@ -62,6 +62,19 @@ def adaptive_block(budget: int) -> int:
     return min(BLOCK, max(256, 1 << int(math.floor(math.log2(budget // 40)))))
 
 
+def grid_bins(block: int) -> int:
+    """Grid bins per axis for rounds of `block` points: `block / 64`, 64 to 256.
+
+    vegas gives its map `neval / 10` increments (at most 1000); with jaxmc's rule,
+    rounds of 2^14 points did better with 256 bins than with 64 (relative error,
+    8 keys at 1e6 evaluations: 5-D posterior 7.1e-3 -> 4.5e-3, x^-1/3 in 6-D
+    1.9e-4 -> 1.1e-4, vegas's 4-D Gaussian 3.9e-4 -> 2.8e-4) and 1024 overfit
+    the 10-D ball's histogram (1.2e-3 -> 7.8e-3); rounds of 2^11 gained nothing
+    from more than 64.
+    """
+    return min(256, max(64, block // 64))
+
+
 def training_rounds(budget: int, block: int) -> int:
     """Training rounds of `block` points for a budget: up to a quarter of it, 2 to `TRAINING_ROUNDS`."""
     return max(2, min(TRAINING_ROUNDS, budget // (4 * block)))

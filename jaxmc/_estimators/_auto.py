@@ -61,13 +61,13 @@ from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
 from ..fit import Integrand, VegasPlus, run_adaptation
 from ..proposals import Grid
+from ._adaptive import grid_bins
 from ._stream import QMC_REPLICAS, final_net, replica_points
 
 
 CANDIDATES = ("qmc", "adaptive")
 PILOT_SHARE = 1 / 16  # at most this share of the budget on the QMC pilot
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0}  # time per evaluation, relative to a Sobol' point
-GRID_BINS = 64  # grid bins per axis for the VEGAS+ candidate
 QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
 SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
 SCREEN_MARGIN = 10.0  # a young grid this much costlier than QMC is not trained on
@@ -214,7 +214,7 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size):
         return Pilot(("qmc",), qmc.variance[None], qmc.variance[None], jnp.asarray(0, jnp.int32), (qmc_n,)), None
     screen = min(SCREEN_ROUNDS, rounds)
     v_first, v_grid, grid_blind, state = _grid_rounds(
-        key_screen, Grid(lo, hi, bins=GRID_BINS), f=f, rounds=screen, round_size=round_size,
+        key_screen, Grid(lo, hi, bins=grid_bins(round_size)), f=f, rounds=screen, round_size=round_size,
         batched=batched,
     )
     variance, cost, choice = _choose(qmc, v_grid, grid_blind)

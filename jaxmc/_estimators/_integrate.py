@@ -39,17 +39,17 @@ from ._adaptive import (
     MIN_STREAM_BLOCKS,
     adaptive_block,
     frozen_vegas_plus,
+    grid_bins,
     refine,
     refining_rounds,
     train_vegas_plus,
     training_rounds,
 )
-from ._auto import GRID_BINS, Pilot, run_pilot
+from ._auto import Pilot, run_pilot
 from ._stream import plan, stream_on_mesh
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
-ADAPT_BINS = GRID_BINS  # grid bins per axis for method="adaptive"
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
 MAX_N = 1 << 30  # default budget when only a tolerance is given
 
@@ -118,12 +118,12 @@ def integrate(
           $R$ independently scrambled Sobol' sequences, each walked block by
           block as one growing net; the mean is their average and the variance
           $s^2/R$ from their spread. With `n`, each replica gets the largest
-          power of two of points that 8 replicas fit in and the rest of the
-          budget buys more replicas ($R$ = 8…15); with a tolerance $R = 8$ and
+          power of two of points that 7 replicas fit in and the rest of the
+          budget buys more replicas ($R$ = 7…13); with a tolerance $R = 8$ and
           the stopping rule is checked when each replica holds a power of two
           of points. Few replicas make the error bar itself uncertain (Student's
           $t$ with $R - 1$ degrees of freedom: a 2-sigma interval covers about
-          91% at $R = 8$). On smooth integrands the error falls like $n^{-1}$
+          91% at $R$ = 7 or 8). On smooth integrands the error falls like $n^{-1}$
           or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
           than plain MC (Owen's scrambled nets), in any dimension.
         - `"adaptive"`: VEGAS+ (`jaxmc.fit.VegasPlus`) in rounds of about
@@ -233,7 +233,7 @@ def integrate(
             est = jax.lax.switch(pilot.choice, branches)
         est = dataclasses.replace(est, n=est.n + spent)
     elif method == "adaptive":
-        est = run.adaptive(key, budget, Grid(lo, hi, bins=ADAPT_BINS))
+        est = run.adaptive(key, budget, Grid(lo, hi, bins=grid_bins(adaptive_block(budget))))
     else:
         est = run.block_method(method, key, budget)
     converged = None
