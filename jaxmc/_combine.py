@@ -23,9 +23,8 @@ class Combined(Estimate):
     their error bars), `q`, the probability that a $\chi^2$ variable with that
     many degrees of freedom is at least as large (tiny $q$ means the parts
     disagree, e.g. an adaptive density missed a peak), and `parts`, the inputs
-    stacked along a leading axis, `sequential`, whether they were weighted
-    as successive adaptive rounds, and `spread`, whether the variance came from
-    their scatter. Its `ess` and `n_nonzero` are the parts'
+    stacked along a leading axis, and `sequential`, whether they were weighted
+    as successive adaptive rounds. Its `ess` and `n_nonzero` are the parts'
     sums, its `pareto_k` the parts' average weighted as their means are, and it
     is `conservative` when parts that are carry over half the weight.
     """
@@ -34,7 +33,6 @@ class Combined(Estimate):
     q: jax.Array
     parts: Estimate
     sequential: bool = eqx.field(static=True, default=False, kw_only=True)
-    spread: bool = eqx.field(static=True, default=False, kw_only=True)
 
     def summary(self) -> str:
         """The parts (iterations) as a text table, like vegas's `summary()`.
@@ -46,9 +44,7 @@ class Combined(Estimate):
         index, with the component's own `chi2/dof` and `Q` (`chi2_dof` here
         sums over components). Outside `jit` only.
         """
-        return iteration_tables(
-            self, functools.partial(combine, sequential=self.sequential, spread=self.spread)
-        )
+        return iteration_tables(self, functools.partial(combine, sequential=self.sequential))
 
 
 def _stack(estimates: Estimate | Sequence[Estimate]) -> Estimate:
@@ -71,9 +67,7 @@ def _plain(e: Estimate) -> Estimate:
     return Estimate(**estimate_fields(e))
 
 
-def combine(
-    estimates: Estimate | Sequence[Estimate], *, sequential: bool = False, spread: bool = False
-) -> Combined:
+def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = False) -> Combined:
     r"""Combine independent estimates of the same integral by inverse-variance weights.
 
     With $w_i = 1/V_i$: $\bar I = \sum_i w_i I_i / \sum_i w_i$, $V = 1/\sum_i w_i$,
@@ -121,14 +115,6 @@ def combine(
       leading axis.
     - `sequential`: the parts are successive rounds of an adaptive method, each
       drawn from a density the earlier ones shaped (weights from the round before).
-    - `spread`: take the variance from the parts' scatter about the combined
-      mean instead, $V = \frac{k_e}{k_e - 1}\sum_i p_i^2 (I_i - \bar I)^2$ with
-      $p_i = w_i/\sum_j w_j$ and $k_e = 1/\sum_i p_i^2$ parts in effect (the
-      factor corrects for $\bar I$ being fitted), rather than from their own
-      variances: for many parts whose own variances are i.i.d. bounds or
-      misestimated (`integrate`'s VEGAS+ rounds, where the bound of a skewed
-      round would set the whole error bar). One part in effect falls back to
-      its own variance.
 
     **Returns:** a `Combined`.
     """
@@ -173,16 +159,7 @@ def combine(
     mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / safe_wsum, unknown_mean)
     unknown_var = jnp.where(all_empty, 0.0, jnp.inf)
     pooled = jnp.sum(w**2 * safe_var, axis=0) / safe_wsum**2  # 1 / sum(w) for w = 1/V
-    if spread:
-        p = w / safe_wsum
-        k_e = 1.0 / jnp.maximum(jnp.sum(p**2, axis=0), jnp.finfo(var.dtype).tiny)
-        residuals = jnp.where(p > 0, parts.mean - mean, 0.0)
-        scatter = jnp.sum(p**2 * residuals**2, axis=0) * k_e / jnp.maximum(k_e - 1.0, 1e-12)
-        scattered = k_e > 1.5
-        pooled = jnp.where(scattered, scatter, pooled)
     variance = jnp.where(any_exact, 0.0, jnp.where(informative, pooled, unknown_var))
-    if not spread:
-        scattered = jnp.zeros(jnp.shape(pooled), bool)
     chi2_terms = jnp.where(measured, (parts.mean - mean) ** 2 / jnp.where(measured, var, 1.0), 0.0)
     chi2 = jnp.sum(chi2_terms)
     dof = jnp.sum(jnp.maximum(jnp.sum(measured, axis=0) - 1, 0)).astype(var.dtype)
@@ -206,12 +183,11 @@ def combine(
         ess=jnp.sum(ess, axis=0),
         n_nonzero=jnp.where(known, jnp.sum(n_nonzero, axis=0, dtype=jnp.result_type(n_nonzero)), -1),
         pareto_k=jnp.where(informative, weighted_k, jnp.nan),
-        conservative=(jnp.sum(jnp.where(bounded, share, 0.0), axis=0) > 0.5) & ~scattered,
+        conservative=jnp.sum(jnp.where(bounded, share, 0.0), axis=0) > 0.5,
         chi2_dof=chi2_dof,
         q=q,
         parts=parts,
         sequential=bool(sequential),
-        spread=bool(spread),
     )
 
 

@@ -151,32 +151,6 @@ def test_combine_sequential_scales_the_weights_by_part_size():
     np.testing.assert_allclose(out.mean, np.sum(w * [1.0, 2.0, 3.0]) / np.sum(w), rtol=1e-12)
 
 
-def test_combine_spread_takes_the_error_bar_from_the_scatter():
-    # Rounds whose own variances are 100x their true ones (i.i.d. bounds on skewed rounds):
-    # the pooled error bar is 10x too wide; the scatter of 40 rounds about the weighted
-    # mean gives the actual one. Over 4,000 sets the mean reported variance matches the
-    # variance of the combined means within 5 sigma of its chi-square spread.
-    rng = np.random.default_rng(1)
-    sets, rounds = 4000, 40
-    sigma2 = np.exp(rng.normal(0.0, 0.5, (sets, rounds)))  # rounds of unequal variance
-    means = 1.0 + rng.normal(size=(sets, rounds)) * np.sqrt(sigma2)
-    full = lambda v: jnp.full((sets, rounds), v)  # noqa: E731
-    stacked = Estimate(jnp.asarray(means), jnp.asarray(100 * sigma2), full(1000), full(0),
-                       ess=full(1000.0), n_nonzero=full(1000), pareto_k=full(0.0),
-                       conservative=full(True))
-    for spread in (False, True):
-        out = jax.vmap(lambda e: combine(e, sequential=True, spread=spread))(stacked)
-        ratio = np.var(np.asarray(out.mean)) / np.mean(np.asarray(out.variance))
-        if spread:
-            assert abs(ratio - 1) < 5 * np.sqrt(2 / sets) + 0.03, ratio
-            assert not np.any(np.asarray(out.conservative))  # the scatter is not a bound
-        else:
-            assert ratio < 0.02 and np.all(np.asarray(out.conservative)), ratio
-    # One part in effect: its own variance.
-    one = combine([Estimate(jnp.asarray(2.0), jnp.asarray(0.5), jnp.asarray(10), jnp.asarray(0))], spread=True)
-    assert float(one.variance) == 0.5
-
-
 def test_combine_rejects_bad_input():
     with pytest.raises(TypeError, match="estimates"):
         combine([])

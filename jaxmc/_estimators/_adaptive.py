@@ -7,16 +7,13 @@ Three stages of VEGAS+ rounds (`jaxmc.fit.VegasPlus`) of one size, `adaptive_blo
 2. **Refining**: the rest of a fixed budget (with a tolerance, up to
    `MAX_REFINE_ROUNDS` rounds) goes to rounds that each estimate the integral
    and go on refining the grid and the allocation for the next, as vegas adapts
-   through the iterations it reports. Their estimates are combined with the
-   sequential weights of `jaxmc.stats.combine(..., sequential=True)`: round $i$
-   by the inverse variance the round before it predicts, a figure fixed before
-   round $i$ drew, so the combination stays unbiased where weights from each
-   round's own variance would favour the rounds that came out low; its
-   variance comes from the rounds' scatter (`spread=True`), as a frozen
-   stream's comes from its rounds' spread, not from the rounds' own error
-   bars, which are i.i.d. bounds when $f/p$ has a power-law tail. Measured at
-   $10^5$ evaluations on the 10-D ball indicator: relative error 0.18 on a grid
-   frozen after training, 0.008 adapting (vegas: 0.024).
+   through the iterations it reports. Their estimates are averaged with
+   weights growing with the round, fixed in advance, and the error bar comes
+   from their scatter (`average_rounds`). Measured at $10^5$ evaluations on the
+   10-D ball indicator: relative error 0.18 on a grid frozen after training,
+   0.009 refined (vegas: 0.024). On a correlated 5-D posterior the refined
+   grid narrows and its rounds grow heavy-tailed: 0.058 against 0.022 frozen
+   (vegas: 0.035), the one case measured where refining did not pay.
 3. **Streaming**, with a tolerance the refining rounds did not meet: the last
    grid, frozen, streams until the tolerance or the budget (sharded over
    devices, `_stream`); the result is that stream's estimate alone (the
@@ -33,10 +30,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._combine import combine
 from .._fit._vegas import strata_per_axis
 from .._progress import report
-from .._stats import Estimate, estimate_fields
+from .._stats import Estimate, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
 from ._stream import BLOCK
 
@@ -103,7 +99,7 @@ def frozen_vegas_plus(state, block: int):
 
 
 def _empty_parts(like: Estimate, rounds: int) -> Estimate:
-    """`rounds` placeholder parts that `combine` gives no weight (infinite variance, n = 0)."""
+    """`rounds` placeholders for the rounds a tolerance may leave unrun (`average_rounds` skips them)."""
 
     def empty(a, fill):
         a = jnp.asarray(a)
@@ -117,6 +113,50 @@ def _empty_parts(like: Estimate, rounds: int) -> Estimate:
     )
 
 
+def average_rounds(parts: Estimate, done) -> Estimate:
+    r"""The first `done` rounds of `parts`, averaged with weights that grow with the round.
+
+    Round $i$ (from 1) gets weight $p_i = i / \sum_j j$: later rounds, drawn from
+    better-trained grids, count more, by weights fixed before any round drew, so
+    that, each round being unbiased given its grid, the average $\bar I = \sum_i
+    p_i I_i$ is unbiased whatever the rounds showed. The variance comes from
+    their scatter, $V = \frac{k_e}{k_e - 1} \sum_i p_i^2 (I_i - \bar I)^2$ with
+    $k_e = 1/\sum_i p_i^2$ rounds in effect, not from the rounds' own error bars
+    (i.i.d. bounds when $f/p$ has a power-law tail). Weights from the rounds'
+    variances, as vegas uses, drift low when small rounds that starved a region
+    report small variances: on a thin shell, rounds of 256 points combined by
+    `combine(..., sequential=True)` covered the truth in 0 of 200 runs and the
+    diagnostics flagged a third of them (these weights: 22%, and 86% flagged).
+    """
+    k = parts.mean.shape[0]
+    dtype = parts.mean.dtype
+    used = jnp.arange(k) < done
+
+    def per_round(a, like):  # a round's figure `(k,)` against `like` `(k, ...)`
+        return jnp.reshape(a, (k,) + (1,) * (jnp.ndim(like) - 1))
+
+    def total(a):
+        return jnp.sum(jnp.where(per_round(used, a), a, 0), axis=0, dtype=jnp.result_type(a))
+
+    weight = jnp.where(used, jnp.arange(1, k + 1, dtype=dtype), 0)
+    p = per_round(weight / jnp.sum(weight), parts.mean)
+    mean = jnp.sum(p * parts.mean, axis=0)
+    rounds_in_effect = 1 / jnp.sum(p**2, axis=0)
+    scatter = jnp.sum(p**2 * (parts.mean - mean) ** 2, axis=0)
+    variance = scatter * rounds_in_effect / jnp.maximum(rounds_in_effect - 1, 1)
+    # Never below the rounding error of the arithmetic (`jaxmc.stats.rounding_floor`).
+    floor = rounding_floor(dtype) * jnp.sum(p * jnp.abs(parts.mean), axis=0)
+    return Estimate(
+        mean=mean, variance=jnp.maximum(variance, floor**2), n=total(parts.n),
+        n_nonfinite=total(parts.n_nonfinite), ess=total(parts.ess),
+        n_nonzero=total(parts.n_nonzero),
+        pareto_k=jnp.sum(
+            per_round(weight / jnp.sum(weight), parts.pareto_k)
+            * jnp.where(per_round(used, parts.pareto_k), parts.pareto_k, 0), axis=0),
+        conservative=jnp.zeros(jnp.shape(mean), bool),
+    )
+
+
 def _report_round(mean, stderr, done, last, *, total: int) -> None:
     """Host side: a refining round's estimate to the progress bar."""
     report(mean, stderr, done, total=total, last=bool(last))
@@ -124,13 +164,12 @@ def _report_round(mean, stderr, done, last, *, total: int) -> None:
 
 @eqx.filter_jit
 def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=False):
-    """Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, combined sequentially.
+    """Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, averaged (`average_rounds`).
 
     Without a tolerance all `rounds` run (a `scan`); with one, the rounds stop
-    once the combination's standard error meets $\\max(atol, rtol\\,|mean|)$,
+    once the average's standard error meets $\\max(atol, rtol\\,|mean|)$,
     after at least `MIN_ROUNDS_TO_STOP` rounds.
-    Returns the combination (`Combined`, its `parts` the rounds run, the rest
-    placeholders with no weight) and the final state. With `progress`, each
+    Returns the average (an `Estimate`) and the final state. With `progress`, each
     round's estimate goes to the progress bar (as `jaxmc.fit.adapt` shows them).
     """
     rule, integrand = VegasPlus(), Integrand(f, batched)
@@ -146,22 +185,20 @@ def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=Fal
 
     if not tolerant:
         carry, parts = jax.lax.scan(one_round, carry, jnp.arange(rounds))
-        return combine(parts, sequential=True, spread=True), eqx.combine(carry, static)
+        return average_rounds(parts, rounds), eqx.combine(carry, static)
 
     shape = jax.eval_shape(lambda c: one_round(c, jnp.int32(0))[1], carry)
     empty = _empty_parts(jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape), rounds)
-
-    def met(parts):
-        est = combine(parts, sequential=True, spread=True)
-        return jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
 
     def body(loop):
         i, carry, parts, _ = loop
         carry, est = one_round(carry, i)
         parts = jax.tree.map(lambda buffer, x: buffer.at[i].set(x), parts, est)
-        return i + 1, carry, parts, met(parts) & (i + 1 >= MIN_ROUNDS_TO_STOP)
+        est = average_rounds(parts, i + 1)
+        met = jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
+        return i + 1, carry, parts, met & (i + 1 >= MIN_ROUNDS_TO_STOP)
 
-    _, carry, parts, _ = jax.lax.while_loop(
+    done, carry, parts, _ = jax.lax.while_loop(
         lambda loop: (loop[0] < rounds) & ~loop[3], body, (jnp.int32(0), carry, empty, False)
     )
-    return combine(parts, sequential=True, spread=True), eqx.combine(carry, static)
+    return average_rounds(parts, done), eqx.combine(carry, static)

@@ -127,15 +127,16 @@ def integrate(
           or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
           than plain MC (Owen's scrambled nets), in any dimension.
         - `"adaptive"`: VEGAS+ (`jaxmc.fit.VegasPlus`) in rounds of about
-          budget/40 points (a power of two from 256 to $2^{14}$; the budget is
-          rounded down to whole rounds): up to ten rounds on at most a quarter
+          budget/40 points (a power of two from 256 to $2^{14}$, each evaluated
+          whole whatever `chunk`; the budget is rounded down to whole rounds)
+          on a grid of 64 to 256 bins per axis: up to ten rounds on at most a quarter
           of the budget train a `Grid` and its stratification and are
           discarded; the rest of the rounds go on adapting, as vegas's do, and
-          are combined (`jaxmc.stats.combine(..., sequential=True,
-          spread=True)`: each round weighted by the inverse variance the round
-          before it predicts, the error bar from their scatter). With a
+          are averaged with weights growing with the round (fixed in advance,
+          so the average stays unbiased), the error bar from their scatter. With a
           tolerance, after 32 such rounds the last grid streams on frozen
-          (sharded over devices) and that stream alone gives the result. See
+          (sharded over devices; the rounds before it, being sequential, are
+          not) and that stream alone gives the result. See
           `jaxmc/_estimators/_adaptive.py`.
         - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
           jittered grid; variance from the spread of block means).
