@@ -124,9 +124,10 @@ def average_rounds(parts: Estimate, done) -> Estimate:
     $k_e = 1/\sum_i p_i^2$ rounds in effect, not from the rounds' own error bars
     (i.i.d. bounds when $f/p$ has a power-law tail). Weights from the rounds'
     variances, as vegas uses, drift low when small rounds that starved a region
-    report small variances: on a thin shell, rounds of 256 points combined by
-    `combine(..., sequential=True)` covered the truth in 0 of 200 runs and the
-    diagnostics flagged a third of them (these weights: 22%, and 86% flagged).
+    report small variances: on the coverage suite's thin shell (rounds of 256
+    points), weighted as `combine(..., sequential=True)` weighs them, 0 of 200
+    runs covered the truth and a third were flagged; with these weights 34%
+    cover and 90% are flagged.
     """
     k = parts.mean.shape[0]
     dtype = parts.mean.dtype
