@@ -162,7 +162,7 @@ def merge_tails(a: Tail, b: Tail) -> Tail:
         a.abs_sum + b.abs_sum,
         a.sq_sum + b.sq_sum,
         a.nonzero + b.nonzero,
-        jax.lax.top_k(jnp.concatenate([a.top, b.top], axis=-1), TAIL + 1)[0],
+        _largest(jnp.concatenate([a.top, b.top], axis=-1), -1),
     )
 
 
@@ -179,7 +179,7 @@ def gather_tails(t: Tail, axes: tuple[str, ...]) -> Tail:
         jax.lax.psum(t.abs_sum, axes),
         jax.lax.psum(t.sq_sum, axes),
         jax.lax.psum(t.nonzero, axes),
-        jax.lax.top_k(top, TAIL + 1)[0],
+        _largest(top, -1),
     )
 
 
@@ -196,6 +196,13 @@ STRUCTURED_MAX_PARETO_K = 0.2
 # A bound this many times the structured variance is flagged as conservative: the error bar
 # is then an upper bound, not a standard error (2-sigma coverage 1.00 in the coverage suite).
 CONSERVATIVE_RATIO = 4.0
+
+
+@jax.jit
+def power_law_tail(t: Tail) -> jax.Array:
+    """Whether the contributions have a power-law tail ($\\hat k$ > `STRUCTURED_MAX_PARETO_K`):
+    an unbounded integrand, where structured (replica, stratum) spreads understate the error."""
+    return pareto_k(t) > STRUCTURED_MAX_PARETO_K
 
 
 @jax.jit
@@ -218,7 +225,7 @@ def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> tuple[jax
     """
     count = jnp.maximum(t.count, 1)
     iid = jnp.maximum(t.sq_sum / count - mean**2, 0.0) / count
-    heavy = pareto_k(t) > STRUCTURED_MAX_PARETO_K
+    heavy = power_law_tail(t)
     conservative = heavy & (iid > CONSERVATIVE_RATIO * variance)
     return jnp.where(heavy, jnp.maximum(variance, iid), variance), conservative
 

@@ -56,7 +56,7 @@ import jax.numpy as jnp
 
 from .._box import to_box
 from .._checks import is_concrete
-from .._diagnostics import STRUCTURED_MAX_PARETO_K, pareto_k, tail_of
+from .._diagnostics import power_law_tail, tail_of
 from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
 from ..fit import Integrand, VegasPlus, run_adaptation
@@ -152,7 +152,7 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
     # An unbounded integrand (a power-law tail of the values, k-hat > 0.2) keeps QMC's
     # variance near plain MC's and makes the replicas' spread skewed and small (the bound of
     # `bounded_variance`): QMC is credited with plain MC's variance there, and no clear win.
-    heavy = jnp.any(pareto_k(tail_of(flat)) > STRUCTURED_MAX_PARETO_K)
+    heavy = jnp.any(power_law_tail(tail_of(flat)))
     projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
     blind = jnp.all(mean == 0) | ~measured
     return _QMCPilot(projected, (plain >= QMC_CLEAR_WIN * full) & measured & ~heavy, blind)
@@ -173,7 +173,7 @@ def _grid_rounds(key, grid, *, f, rounds, round_size, batched):
 
 def _projected(v_first, v_last, rounds_done: int, rounds: int):
     """The grid's variance per evaluation after `rounds`, if it kept falling at the rate
-    its first `rounds_done` showed (at most 1000-fold per round pair, never rising)."""
+    its first `rounds_done` rounds showed (that fall taken as at most 1000-fold, never a rise)."""
     fall = jnp.where(v_first > 0, v_last / jnp.where(v_first > 0, v_first, 1.0), 1.0)
     fall = jnp.clip(jnp.where(jnp.isfinite(fall), fall, 1.0), 1e-3, 1.0)
     return v_last * fall ** ((rounds - rounds_done) / max(rounds_done - 1, 1))
@@ -200,8 +200,8 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size):
     grid's variance says little of the trained one's (measured after 3 and 10
     rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a 5-D
     posterior), so the choice is made on the trained grid unless the young one,
-    projected at the rate it was falling, is `SCREEN_MARGIN` times costlier than QMC. When QMC's pilot beats plain Monte Carlo
-    on the same points by `QMC_CLEAR_WIN` per evaluation (a smooth integrand) no
+    projected at the rate it was falling, is `SCREEN_MARGIN` times costlier than QMC.
+    When QMC's pilot beats plain Monte Carlo on the same points by `QMC_CLEAR_WIN` per evaluation (a smooth integrand) no
     grid is trained at all. Both shortcuts are taken outside `jit` only, where the
     figures are known.
     """
@@ -214,7 +214,8 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size):
         return Pilot(("qmc",), qmc.variance[None], qmc.variance[None], jnp.asarray(0, jnp.int32), (qmc_n,)), None
     screen = min(SCREEN_ROUNDS, rounds)
     v_first, v_grid, grid_blind, state = _grid_rounds(
-        key_screen, Grid(lo, hi, bins=grid_bins(round_size)), f=f, rounds=screen, round_size=round_size,
+        key_screen, Grid(lo, hi, bins=grid_bins(round_size)), f=f, rounds=screen,
+        round_size=round_size,
         batched=batched,
     )
     variance, cost, choice = _choose(qmc, v_grid, grid_blind)

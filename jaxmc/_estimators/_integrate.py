@@ -312,7 +312,6 @@ class _Run:
             refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
                                     batched=self.batched, rounds=rounds, tolerant=self.tolerant,
                                     progress=self.progress)
-        refined = Estimate(**estimate_fields(refined))
         rest = budget - rounds * block
         if not self.tolerant or rest < MIN_STREAM_BLOCKS * block:
             return refined
