@@ -110,6 +110,17 @@ def uniform(key: jax.Array, shape: tuple[int, ...], dtype) -> jax.Array:
     return jnp.clip(u.astype(dtype), jnp.finfo(dtype).tiny, below_one)
 
 
+def categorical(key: jax.Array, log_weights: jax.Array, n: int) -> jax.Array:
+    r"""`n` i.i.d. indices into `log_weights` `(K,)`, index $k$ with probability
+    $\mathrm{softmax}(\text{log\_weights})_k$, by inverting the CDF at one uniform each
+    (`jax.random.categorical`'s Gumbel trick draws and takes two logs of $K$ per index).
+    """
+    cdf = jnp.cumsum(jax.nn.softmax(lax.stop_gradient(log_weights)))
+    u = uniform(key, (n,), cdf.dtype) * cdf[-1]
+    k = jnp.searchsorted(cdf, u, side="right", method="compare_all")
+    return jnp.minimum(k, log_weights.shape[0] - 1).astype(jnp.int32)
+
+
 def _uniform_below(k0: jax.Array, k1: jax.Array, stream: jax.Array, n: int) -> jax.Array:
     """One exactly uniform integer in $[0, n)$ per entry of `stream` (rejection sampling)."""
     if n & (n - 1) == 0:

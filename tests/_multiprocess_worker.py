@@ -38,7 +38,7 @@ def main(port: int, processes: int, index: int) -> None:
 
     import jaxmc
 
-    def f(x):  # a narrow peak: method="auto" picks VEGAS+ ("adaptive")
+    def f(x):  # a narrow peak: method="auto" picks the mixture seeded from the grid
         return jnp.exp(-200.0 * jnp.sum((x - 0.3) ** 2))
 
     lo, hi = jnp.zeros(3), jnp.ones(3)

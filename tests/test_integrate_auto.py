@@ -11,6 +11,10 @@ import jaxmc
 from .helpers import assert_unbiased_and_honest, box, cos_product, peak, run_keys
 
 
+# The methods that start from a VEGAS+ grid: the grid itself, or the mixture seeded from it.
+GRID_BASED = ("adaptive", "mixture")
+
+
 def genz_gaussian(d):
     """Genz's Gaussian $\\exp(-\\sum a^2 (x - 1/2)^2)$ with $a = 1$: smooth in any dimension."""
     return lambda x: jnp.exp(-jnp.sum((x - 0.5) ** 2))
@@ -27,9 +31,10 @@ def test_auto_chooses_qmc_on_a_smooth_integrand_and_the_grid_on_a_narrow_peak():
     assert smooth.pilot.candidates[int(smooth.pilot.choice)] == "qmc"
     assert abs(smooth.mean - np.sin(1.0) ** 4) < 5 * smooth.stderr
     narrow = jaxmc.integrate(jax.random.key(0), peak(4, s=0.02), lo, hi, n=200_000)
-    assert narrow.method == "adaptive"
+    assert narrow.method in GRID_BASED
     cost = np.asarray(narrow.pilot.cost)
-    assert cost[1] < cost[0] / 10  # not a close call: the grid is far cheaper per unit variance
+    # Not a close call: the grid-based winner is far cheaper per unit variance than QMC.
+    assert cost[int(narrow.pilot.choice)] < cost[0] / 10
     assert abs(narrow.mean - 1.0) < 5 * narrow.stderr
     # Every evaluation is counted, the pilot's too: the pilot's, then R whole nets of 2^k.
     streamed = int(smooth.n) - sum(smooth.pilot.evaluations)
@@ -45,8 +50,8 @@ def test_auto_credits_qmc_with_plain_mc_under_a_power_law_tail():
     f = lambda x: jnp.prod(0.5 / jnp.sqrt(x))
     for seed in range(3):
         est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(2), jnp.ones(2), n=100_000)
-        assert est.method == "adaptive", seed
-        qmc, grid = np.asarray(est.pilot.variance_per_evaluation)
+        assert est.method in GRID_BASED, seed
+        qmc, grid = np.asarray(est.pilot.variance_per_evaluation)[:2]
         assert grid * 3 < qmc, (qmc, grid)  # cheaper per unit variance at 3x the cost
 
 
@@ -58,18 +63,53 @@ def test_auto_trains_a_grid_that_is_still_learning():
     f = lambda x: jnp.exp(-jnp.sum((x - 0.5) ** 2) / alpha**2) / (alpha * np.sqrt(np.pi)) ** 8
     for seed in range(8):
         est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(8), jnp.ones(8), n=100_000)
-        assert est.method == "adaptive", seed
+        assert est.method in GRID_BASED, seed
         assert abs(float(est.mean) / erf(1 / (2 * alpha)) ** 8 - 1) < 0.01, seed
 
 
-@pytest.mark.parametrize("f, exact", [(cos_product, np.sin(1.0) ** 2), (peak(2, s=0.03), 1.0)])
-def test_auto_pilot_never_biases_the_result(f, exact):
-    # Under jit and vmap the choice is traced (both candidates run, one is kept); over many
+def correlated_gaussian(d=5, sigma=0.02, rho=0.7):
+    r"""The issue's posterior: a normalised Gaussian at the centre of $[0,1]^d$ with
+    covariance $\sigma^2((1-\rho) I + \rho\,11^T)$ (integral 1 up to ~1e-100)."""
+    cov = sigma**2 * ((1 - rho) * np.eye(d) + rho * np.ones((d, d)))
+    precision = jnp.asarray(np.linalg.inv(cov))
+    norm = 1 / np.sqrt((2 * np.pi) ** d * np.linalg.det(cov))
+    return lambda x: norm * jnp.exp(-0.5 * (x - 0.5) @ precision @ (x - 0.5))
+
+
+def test_auto_seeds_a_mixture_on_a_correlated_posterior():
+    # A grid is a product of axis densities: along a diagonal ridge it spreads over every
+    # combination of the axes' bins. The Gaussian mixture seeded from its samples follows
+    # the ridge; measured at 1e5, relative error ~0.005 against the grid's ~0.05 (vegas 0.035).
+    # On one key of these four the mixture fitted loosely (relative variance 77, above
+    # MIXTURE_MAX_VARIANCE) and the grid went on instead.
+    lo, hi = box(5)
+    f = correlated_gaussian()
+    chosen = []
+    for seed in range(4):
+        est = jaxmc.integrate(jax.random.key(seed), f, lo, hi, n=100_000)
+        assert abs(float(est.mean) - 1) < 5 * float(est.stderr) and int(est.n) <= 100_000, seed
+        chosen.append(est.method)
+        if est.method == "mixture":
+            variance = np.asarray(est.pilot.variance_per_evaluation)
+            assert variance[2] < variance[1] / 100, variance  # far below the trained grid's
+            assert float(est.stderr) < 0.01, seed
+    assert chosen.count("mixture") >= 3, chosen
+
+
+@pytest.mark.parametrize(
+    "f, exact, taken",
+    [(cos_product, np.sin(1.0) ** 2, ("qmc",)), (peak(2, s=0.03), 1.0, ("adaptive", "mixture"))],
+)
+def test_auto_pilot_never_biases_the_result(f, exact, taken):
+    # Under jit and vmap the choice is traced (every candidate runs, one is kept); over many
     # keys the mean error is within 5 of its standard errors and the error bars are honest.
+    # On the peak the keys split between the grid and the mixture: both paths are checked.
     lo, hi = box(2)
-    est = run_keys(lambda k: jaxmc.integrate(k, f, lo, hi, n=2**15), seed=3, k=200)
+    est = run_keys(lambda k: jaxmc.integrate(k, f, lo, hi, n=2**15), seed=3, k=120)
     assert est.method == "auto"  # traced: the choice is on the pilot
     assert_unbiased_and_honest(est, exact, honest="equal")
+    counts = np.bincount(np.asarray(est.pilot.choice), minlength=3)
+    assert {est.pilot.candidates[i] for i in np.flatnonzero(counts)} == set(taken), counts
 
 
 def test_auto_under_jit_matches_the_eager_choice():
@@ -77,7 +117,7 @@ def test_auto_under_jit_matches_the_eager_choice():
     f = peak(3, s=0.05)
     eager = jaxmc.integrate(jax.random.key(4), f, lo, hi, n=2**16)
     traced = jax.jit(lambda k: jaxmc.integrate(k, f, lo, hi, n=2**16))(jax.random.key(4))
-    assert eager.method == "adaptive" and traced.method == "auto"
+    assert eager.method in GRID_BASED and traced.method == "auto"
     assert int(traced.pilot.choice) == int(eager.pilot.choice)
     np.testing.assert_allclose(traced.mean, eager.mean, rtol=1e-12)
     assert traced.n == eager.n

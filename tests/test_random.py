@@ -151,3 +151,20 @@ def test_latin_hypercube_permutation_path_is_marginally_uniform(monkeypatch):
     for j in range(2):
         counts = np.bincount(bins[:, j], minlength=n)
         assert stats.chisquare(counts).pvalue > P_FLOOR / 2, counts
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_categorical_draws_indices_with_the_softmax_probabilities(key, dtype):
+    # Inverse-CDF categorical: the counts of 2e5 draws against softmax(log_weights),
+    # a zero-probability index never drawn, the last index reachable.
+    probs = np.array([0.5, 0.0, 0.2, 0.05, 0.25])
+    with np.errstate(divide="ignore"):
+        log_weights = jnp.asarray(np.log(probs) + 3.0, dtype)  # unnormalised
+    n = 200_000
+    k = _random.categorical(key, log_weights, n)
+    assert k.dtype == jnp.int32 and k.shape == (n,)
+    counts = np.bincount(np.asarray(k), minlength=5)
+    assert counts[1] == 0 and counts[4] > 0
+    keep = probs > 0
+    assert stats.chisquare(counts[keep], n * probs[keep]).pvalue > P_FLOOR
+    assert int(jnp.max(jax.jit(_random.categorical, static_argnums=2)(key, log_weights, 10))) < 5

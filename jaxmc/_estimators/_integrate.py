@@ -109,11 +109,13 @@ def integrate(
         - `"auto"` (default): a pilot measures each candidate's variance per
           evaluation — randomised QMC on at most 1/16 of the budget, then,
           unless QMC already beats plain MC 1000-fold (a smooth integrand), the
-          VEGAS+ grid of `"adaptive"` as it trains (at most a quarter) — and
-          spends the rest on the cheaper per unit of variance (see
-          `jaxmc/_estimators/_auto.py` for the rules); `est.method` names the
-          winner and `est.pilot` keeps the figures. The pilot's evaluations
-          count in `n` but not in the mean, which stays unbiased.
+          VEGAS+ grid of `"adaptive"` as it trains (at most a quarter) and, on
+          a fixed budget, a mixture of Gaussians seeded from the trained grid
+          (`est.method` `"mixture"`, streamed i.i.d.) — and spends the rest on
+          the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
+          for the rules); `est.method` names the winner and `est.pilot` keeps
+          the figures. The pilot's evaluations count in `n` but not in the
+          mean, which stays unbiased.
         - `"qmc"`: randomised QMC that keeps its convergence rate:
           $R$ independently scrambled Sobol' sequences, each walked block by
           block as one growing net; the mean is their average and the variance
@@ -219,13 +221,16 @@ def integrate(
         pilot_key, key = jax.random.split(key)
         block = adaptive_block(budget)
         rounds = training_rounds(budget, block)
-        pilot, state = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds, block)
+        pilot, state, mixture = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds, block,
+                                          tolerant)
         spent = sum(pilot.evaluations)
         rest = budget - spent
         branches = (
             lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
+            # i.i.d. from the mixture the pilot seeded from the grid.
+            lambda: run.block_method("importance", key, rest, spent, frozen=mixture),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -286,10 +291,10 @@ class _Run:
                 batched=self.batched,
             )
 
-    def block_method(self, method, key, budget, done=0):
+    def block_method(self, method, key, budget, done=0, frozen=None):
         run_plan = plan(method, budget, self.chunk, self.mesh.size, self.d,
                         tolerant=self.tolerant)
-        return self._stream(key, None, run_plan, done)
+        return self._stream(key, frozen, run_plan, done)
 
     def qmc(self, key, budget, done=0):
         return self.block_method("qmc", key, budget, done)

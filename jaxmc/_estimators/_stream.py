@@ -13,7 +13,8 @@ is bounded by the chunk and float32 stays accurate over $10^9$ samples.
 
 Three kinds of statistical unit are used:
 
-- Plain Monte Carlo treats every sample as an i.i.d. observation.
+- Plain Monte Carlo, and importance sampling from a fixed proposal (the
+  density `"auto"` fitted, `frozen`), treat every sample as an i.i.d. observation.
 - Stratification and VEGAS+ make the samples inside a block dependent; each
   block is one independent randomisation (an unbiased estimate on its own) and
   the variance comes from the spread of the block means.
@@ -111,7 +112,7 @@ def plan(
     """
     strata: tuple[int, ...] = ()
     replicas = 1
-    if method == "plain":
+    if method in ("plain", "importance"):
         # Smaller budgets get one power-of-two block, so little is masked away.
         block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
         blocks = -(-budget // block)
@@ -216,7 +217,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
     d = 1 if lo.ndim == 0 else lo.shape[0]
     dtype = lo.dtype
     volume = jnp.prod(hi - lo)
-    per_sample = method == "plain"
+    per_sample = method in ("plain", "importance")
     if method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
             jax.random.split(key, plan.replicas)
@@ -225,6 +226,8 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
 
     def points_of_block(b):
         """The block's points `x` and their density `p(x)`."""
+        if method == "importance":  # i.i.d. from the frozen proposal
+            return frozen.sample(jax.random.fold_in(key, b), plan.block)
         if method == "qmc":
             r, position = b % plan.replicas, b // plan.replicas
             u = replica_points((scrambles[0][r], scrambles[1][r]), position, log2_block, dtype)

@@ -24,8 +24,8 @@ class GaussianMixture(AbstractProposal):
     with $\pi = \mathrm{softmax}(\text{logits})$ and $\sigma = e^{\text{log\_scales}}$.
     Each component is truncated on its own, so every component (and the
     mixture) integrates to one on the box exactly. Sampling picks a component
-    with `jax.random.categorical` and inverts each axis' truncated-normal CDF,
-    so `x` is a differentiable function of the means and scales
+    (the weights' CDF inverted at a uniform) and inverts each axis'
+    truncated-normal CDF, so `x` is a differentiable function of the means and scales
     (reparameterised); `fit` uses a stratified draw (a fixed share of samples per
     component, weighted by $\pi_k$) so the logits get exact gradients too.
 
@@ -213,13 +213,13 @@ class GaussianMixture(AbstractProposal):
 
     def _sample_component(self, u: jax.Array, k: jax.Array) -> jax.Array:
         lo, hi = as_vectors(self.lo, self.hi)
-        return truncnorm_icdf(u, self.means[k], jnp.exp(self.log_scales[k]), lo, hi)
+        return truncnorm_icdf(u, self.means, jnp.exp(self.log_scales), lo, hi, component=k)
 
     def sample(self, key, n):
         key = check_key(key)
         n = check_count(n)
         key_c, key_u = jax.random.split(key)
-        k = jax.random.categorical(key_c, self.logits, shape=(n,))
+        k = _random.categorical(key_c, self.logits, n)
         u = _random.uniform(key_u, (n, self.dim), self.lo.dtype)
         x = _from_matrix(self, self._sample_component(u, k))
         return x, self.pdf(x)

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _random
 from .._checks import check_count, check_key, is_concrete
 from ._base import AbstractProposal, check_proposal, split_evenly
 
@@ -71,7 +72,7 @@ class Mixture(AbstractProposal):
         key = check_key(key)
         n = check_count(n)
         keys = jax.random.split(key, len(self.proposals) + 1)
-        k = jax.random.categorical(keys[0], self.log_weights, shape=(n,))
+        k = _random.categorical(keys[0], self.log_weights, n)
         xs = [p.sample(kk, n)[0] for p, kk in zip(self.proposals, keys[1:])]
         x = xs[0]
         for i, xi in enumerate(xs[1:], start=1):

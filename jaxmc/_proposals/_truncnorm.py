@@ -24,7 +24,7 @@ def log_ndtr_diff(a: jax.Array, b: jax.Array) -> jax.Array:
     return log_hi + jnp.log1p(-jnp.exp(jnp.minimum(log_lo - log_hi, -1e-300)))
 
 
-def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi) -> jax.Array:
+def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi, component=None) -> jax.Array:
     r"""Inverse CDF of $\mathcal N(\mu, \sigma^2)$ truncated to $[lo, hi]$ at `u`.
 
     $x = \mu + \sigma\,\Phi^{-1}(\Phi(a) + u(\Phi(b) - \Phi(a)))$ with
@@ -32,15 +32,22 @@ def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi) -> jax
     mean where the CDF values are not close to 1 (so both tails keep their
     precision). Differentiable in $\mu$, $\sigma$: the reparameterised sample.
     The result lies strictly inside $(lo, hi)$, never on a face.
+
+    With `component` (integer indices `(n,)`), `mu` and `sigma` are per
+    component `(K, ...)` and point $i$ of `u` `(n, ...)` is drawn from component
+    `component[i]`: $\Phi(a)$ and $\Phi(b)$ are then computed once per component
+    rather than per point (they are the dearest part).
     """
     a = (lo - mu) / sigma
     b = (hi - mu) / sigma
     flip = (a + b) > 0  # box mostly above the mean: work with the reflected variable
     a2 = jnp.where(flip, -b, a)
     b2 = jnp.where(flip, -a, b)
-    u2 = jnp.where(flip, 1 - u, u)
     pa = ndtr(a2)
     pb = ndtr(b2)
+    if component is not None:
+        mu, sigma, a2, b2, flip, pa, pb = (t[component] for t in (mu, sigma, a2, b2, flip, pa, pb))
+    u2 = jnp.where(flip, 1 - u, u)
     eps = jnp.finfo(jnp.result_type(u)).tiny
     z = ndtri(jnp.clip(pa + u2 * (pb - pa), eps, 1 - jnp.finfo(jnp.result_type(u)).epsneg))
     # Far in the lower tail Phi underflows; there the truncated normal is an
