@@ -281,10 +281,11 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
     projected at the rate it was falling, is `SCREEN_MARGIN` times costlier than QMC.
     The mixture is seeded from the trained grid and measured on at most
     `MIXTURE_PILOT_POINTS` points, unless QMC or the grid already costs less than
-    a mixture at `MIXTURE_FLOOR` would, or with a tolerance (`tolerant`): there the
-    mixture's i.i.d. stream stopped on its skewed weights when their spread happened
-    to be small, low (on the 5-D posterior at `rtol=1e-3`, 8 keys: mean z -1.6, one
-    key at -4.3; the grid's stream stays within 2.5 sigma).
+    a mixture at `MIXTURE_FLOOR` would, in one dimension (a grid there is any
+    piecewise-constant density), or with a tolerance (`tolerant`): there the
+    mixture's i.i.d. stream stopped on its skewed weights when their spread
+    happened to be small, low (on the 5-D posterior at `rtol=1e-3`, 8 keys: mean
+    z -1.6, one key at -4.3; the grid's stream stays within 2.5 sigma).
     When QMC's pilot beats plain Monte Carlo on the same points by `QMC_CLEAR_WIN` per
     evaluation (a smooth integrand) no grid is trained at all. Both shortcuts are taken
     outside `jit` only, where the figures are known.
@@ -323,7 +324,8 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
     two = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
                   jnp.stack([qmc.blind, grid_blind, True]))
     beaten = ~decided & (jnp.min(two[1]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
-    if tolerant or (is_concrete(beaten) and bool(beaten)):
+    # In one dimension a grid is any piecewise-constant density: a mixture adds nothing.
+    if tolerant or lo.size == 1 or (is_concrete(beaten) and bool(beaten)):
         variance, cost, choice = (a[:2] if a.ndim else a for a in two)
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, rounds * round_size))
         return pilot, state, None
