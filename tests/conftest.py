@@ -1,5 +1,22 @@
+import atexit
+import os
+import shutil
+import tempfile
+
 import jax
 import pytest
+
+
+# One persistent compilation cache for the run, shared by its xdist workers (they inherit
+# the variable from the process that loaded this file first) and removed at its exit:
+# tests compile the same programs under different names and in different modules (after
+# `_release_compiled_programs`); measured on tests/test_fit.py, 152 s -> 127 s.
+if "JAXMC_TEST_XLA_CACHE" not in os.environ:
+    os.environ["JAXMC_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="jaxmc-test-xla-cache-")
+    atexit.register(shutil.rmtree, os.environ["JAXMC_TEST_XLA_CACHE"], ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", os.environ["JAXMC_TEST_XLA_CACHE"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 # Tests run in float64 so that statistical checks measure the estimators, not

@@ -14,7 +14,7 @@ import pytest
 
 import jaxmc
 
-from .helpers import assert_unbiased_and_honest, cos_product, run_keys
+from .helpers import assert_unbiased_and_honest, cos_product, run_keys, subprocess_xla_flags
 
 
 LO, HI = jnp.zeros(3), jnp.ones(3)
@@ -170,7 +170,7 @@ def test_four_devices_match_one_device():
               int(a.n), int(b.n), float(t.stderr[0] / t.mean[0]),
               *c.mean.tolist(), *e.mean.tolist(), *c.variance.tolist(), *e.variance.tolist())
     """
-    values = _run_script(code, {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}).split()
+    values = _run_script(code, {"XLA_FLAGS": subprocess_xla_flags(devices=4)}).split()
     a_mean, b_mean = np.array(values[0:2], float), np.array(values[2:4], float)
     a_var, b_var = np.array(values[4:6], float), np.array(values[6:8], float)
     np.testing.assert_allclose(a_mean, b_mean, rtol=1e-12)

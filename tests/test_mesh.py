@@ -14,6 +14,8 @@ import textwrap
 import numpy as np
 import pytest
 
+from .helpers import subprocess_xla_flags
+
 
 SCRIPT = """
     import json, sys
@@ -77,7 +79,7 @@ SCRIPT = """
 @pytest.fixture(scope="module")
 def results():
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+           "XLA_FLAGS": subprocess_xla_flags(devices=4)}
     done = subprocess.run(
         [sys.executable, "-c", textwrap.dedent(SCRIPT)],
         capture_output=True, text=True, env=env, timeout=600,

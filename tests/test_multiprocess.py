@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from .helpers import subprocess_xla_flags
+
 
 WORKER = Path(__file__).with_name("_multiprocess_worker.py")
 PROBE_FAILED = 3  # the worker's exit status when no cross-process collective runs
@@ -31,7 +33,7 @@ def _launch(port: int, processes: int, index: int, devices: int) -> subprocess.P
     env = {
         **os.environ,
         "JAX_PLATFORMS": "cpu",
-        "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}",
+        "XLA_FLAGS": subprocess_xla_flags(devices),
     }
     return subprocess.Popen(
         [sys.executable, str(WORKER), str(port), str(processes), str(index)],

@@ -1,11 +1,14 @@
 """Execute every notebook in `notebooks/` with the small-size setting.
 
-Notebooks read `JAXMC_NOTEBOOK_SMALL=1` and shrink their sample sizes.
+Notebooks read `JAXMC_NOTEBOOK_SMALL=1` and shrink their sample sizes; their kernels
+compile with `helpers.SUBPROCESS_XLA_FLAGS` (compilation is most of their time).
 """
 
 from pathlib import Path
 
 import pytest
+
+from .helpers import subprocess_xla_flags
 
 
 nbformat = pytest.importorskip("nbformat")
@@ -18,6 +21,7 @@ NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 def test_notebook_runs(path, monkeypatch, tmp_path):
     monkeypatch.setenv("JAXMC_NOTEBOOK_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.setenv("XLA_FLAGS", subprocess_xla_flags())
     notebook = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(
         notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
