@@ -84,7 +84,7 @@ from .._checks import is_concrete
 from .._diagnostics import power_law_tail, tail_of
 from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
-from ..fit import Integrand, VegasPlus, run_adaptation
+from ..fit import Integrand, VegasPlus
 from ..proposals import GaussianMixture, Grid, Mixture
 from ._adaptive import grid_bins
 from ._stream import QMC_REPLICAS, final_net, replica_points
@@ -199,17 +199,35 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 
 
 @eqx.filter_jit
-def _grid_rounds(key, grid, *, f, rounds, round_size, batched):
-    """`rounds` VEGAS+ rounds from `grid`: the first and last rounds' relative variance
-    per evaluation, whether the last saw only zeros, the trained state and the last
-    round's `Samples`."""
-    parts, state, samples = run_adaptation(
-        VegasPlus(), key, Integrand(f, batched), grid, rounds, round_size, keep_samples=True
+def _grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
+    """The first `active` of `rounds` VEGAS+ rounds from `grid`, the rest skipped, so one
+    compiled program serves the screening and the training stage (~1.5 s of a first call):
+    the first and last rounds' relative variance per evaluation, whether the last saw only
+    zeros, the state after it and its `Samples`. The rounds are those of `run_adaptation`."""
+    rule, integrand = VegasPlus(), Integrand(f, batched)
+    rule.check(grid, round_size)
+    carry, static = eqx.partition(rule.init(key, grid, round_size), eqx.is_array)
+
+    def step(carry, i):
+        state, est, samples = rule.step(key, i, eqx.combine(carry, static), integrand)
+        return eqx.partition(state, eqx.is_array)[0], est, samples
+
+    _, no_estimate, no_samples = jax.tree.map(
+        lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(step, carry, jnp.int32(0))
     )
+
+    def round_(loop, i):
+        def run(carry, _):
+            carry, est, samples = step(carry, i)
+            return (carry, samples), est
+
+        return jax.lax.cond(i < active, run, lambda *loop: (loop, no_estimate), *loop)
+
+    (carry, samples), parts = jax.lax.scan(round_, (carry, no_samples), jnp.arange(rounds))
     v_first, v_last = (
-        _relative_variance(parts.mean[i], parts.variance[i]) * round_size for i in (0, -1)
+        _relative_variance(parts.mean[i], parts.variance[i]) * round_size for i in (0, active - 1)
     )
-    return v_first, v_last, jnp.all(parts.mean[-1] == 0), state, samples
+    return v_first, v_last, jnp.all(parts.mean[active - 1] == 0), eqx.combine(carry, static), samples
 
 
 def seeded_mixture(grid: Grid, samples) -> Mixture:
@@ -269,6 +287,46 @@ def _choose(qmc: _QMCPilot, variance, blind):
     return variance, cost, choice.astype(jnp.int32)
 
 
+def _first_two(choice):
+    """`(variance, cost, choice)` restricted to QMC and the grid."""
+    return tuple(a[:2] if a.ndim else a for a in choice)
+
+
+# The decisions between the pilot's stages, each one compiled program (run eagerly, their
+# dozens of small operations were ~1.5 s of compilation in a first call).
+@eqx.filter_jit
+def _screen(qmc: _QMCPilot, v_first, v_grid, grid_blind, screen: int, rounds: int):
+    """QMC against the grid after `screen` of its `rounds` rounds: `(the choice, the
+    choice restricted to the two, whether the young grid is dropped)`."""
+    # The mixture is not seeded from a young grid: its variance counts as unknown here.
+    screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
+                       jnp.stack([qmc.blind, grid_blind, True]))
+    # Dropped only if, still falling at the rate its first rounds showed, the grid would
+    # end SCREEN_MARGIN times costlier than QMC (a young grid on a peak is 100x off).
+    prospect = _projected(v_first, v_grid, screen, rounds) * RELATIVE_COST["adaptive"]
+    decided = (prospect > SCREEN_MARGIN * screened[1][0]) & ~qmc.blind
+    return screened, _first_two(screened), decided
+
+
+@eqx.filter_jit
+def _after_training(qmc: _QMCPilot, v_grid, grid_blind, screened, decided):
+    """QMC against the trained grid (the screened choice where the grid was dropped), and
+    whether either already costs less than any mixture measured would (`MIXTURE_FLOOR`)."""
+    two = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
+                  jnp.stack([qmc.blind, grid_blind, True]))
+    beaten = ~decided & (jnp.min(two[1]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
+    two = tuple(jnp.where(decided, a, b) for a, b in zip(_first_two(screened), _first_two(two)))
+    return two, beaten
+
+
+@eqx.filter_jit
+def _with_mixture(qmc: _QMCPilot, v_grid, grid_blind, v_mixture, mixture_blind, screened, decided):
+    """The three candidates after training (the screened choice where the grid was dropped)."""
+    trained = _choose(qmc, jnp.stack([qmc.variance, v_grid, v_mixture]),
+                      jnp.stack([qmc.blind, grid_blind, grid_blind | mixture_blind]))
+    return tuple(jnp.where(decided, a, b) for a, b in zip(screened, trained))
+
+
 def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=False):
     """Run the candidates' pilots; returns `(Pilot, trained VEGAS+ state or None,
     seeded mixture or None)`.
@@ -302,39 +360,30 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
     screen = min(SCREEN_ROUNDS, rounds)
     grid = Grid(lo, hi, bins=grid_bins(round_size))
     settings = dict(f=f, round_size=round_size, batched=batched)
-    v_first, v_grid, grid_blind, state, samples = _grid_rounds(key_screen, grid, rounds=screen,
-                                                               **settings)
-    # The mixture is not seeded from a young grid: its variance counts as unknown here.
-    screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
-                       jnp.stack([qmc.blind, grid_blind, True]))
-    # Dropped only if, still falling at the rate its first rounds showed, the grid would
-    # end SCREEN_MARGIN times costlier than QMC (a young grid on a peak is 100x off).
-    prospect = _projected(v_first, v_grid, screen, rounds) * RELATIVE_COST["adaptive"]
-    decided = (prospect > SCREEN_MARGIN * screened[1][0]) & ~qmc.blind
+    v_first, v_grid, grid_blind, state, samples = _grid_rounds(
+        key_screen, grid, jnp.int32(screen), rounds=rounds, **settings
+    )
+    screened, screened_two, decided = _screen(qmc, v_first, v_grid, grid_blind, screen, rounds)
     if is_concrete(decided) and bool(decided):
-        variance, cost, choice = (a[:2] if a.ndim else a for a in screened)
+        variance, cost, choice = screened_two
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
         return pilot, state, None
     if rounds > screen:
         _, v_grid, grid_blind, state, samples = _grid_rounds(
-            key_train, state.grid, rounds=rounds - screen, **settings
+            key_train, state.grid, jnp.int32(rounds - screen), rounds=rounds, **settings
         )
     # No mixture measured so far has gone below MIXTURE_FLOOR: when QMC or the grid already
     # costs less than such a mixture would, it is not fitted (outside jit only).
-    two = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
-                  jnp.stack([qmc.blind, grid_blind, True]))
-    beaten = ~decided & (jnp.min(two[1]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
+    (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, screened, decided)
     # In one dimension a grid is any piecewise-constant density: a mixture adds nothing.
     if tolerant or lo.size == 1 or (is_concrete(beaten) and bool(beaten)):
-        variance, cost, choice = (a[:2] if a.ndim else a for a in two)
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, rounds * round_size))
         return pilot, state, None
     mixture_n = min(round_size, MIXTURE_PILOT_POINTS)
     v_mixture, mixture_blind, mixture = _mixture_pilot(
         key_mixture, state.grid, samples, f=f, size=mixture_n, batched=batched
     )
-    trained = _choose(qmc, jnp.stack([qmc.variance, v_grid, v_mixture]),
-                      jnp.stack([qmc.blind, grid_blind, grid_blind | mixture_blind]))
-    variance, cost, choice = (jnp.where(decided, a, b) for a, b in zip(screened, trained))
+    variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, v_mixture, mixture_blind,
+                                           screened, decided)
     evaluations = (qmc_n, rounds * round_size, mixture_n)
     return Pilot(CANDIDATES, variance, cost, choice, evaluations), state, mixture
