@@ -138,6 +138,28 @@ def test_samples_reproduce_the_round_estimate(key, rule, proposal, n):
     np.testing.assert_allclose(float(total), float(parts.mean[-1]), rtol=1e-10)
 
 
+@pytest.mark.parametrize("keep_samples", [False, True])
+def test_active_rounds_are_the_first_rounds_of_a_shorter_run(key, keep_samples):
+    """`active=k` in a scan of 5 rounds runs exactly the rounds of `iterations=k` (same
+    keys, state and kept samples) and estimates zeros for the skipped ones, under one
+    compiled program for every k."""
+    run = eqx.filter_jit(
+        lambda active: run_adaptation(VegasPlus(), key, Integrand(two_peaks), Grid(LO, HI, 16),
+                                         5, 512, keep_samples=keep_samples, active=active)
+    )
+    for k in (2, 4):
+        parts, state, samples = run(jnp.int32(k))
+        ref_parts, ref_state, ref_samples = run_adaptation(
+            VegasPlus(), key, Integrand(two_peaks), Grid(LO, HI, 16), k, 512,
+            keep_samples=keep_samples,
+        )
+        np.testing.assert_array_equal(parts.mean[:k], ref_parts.mean)
+        assert np.all(np.asarray(parts.mean[k:]) == 0)
+        np.testing.assert_array_equal(state.grid.logits, ref_state.grid.logits)
+        if keep_samples:
+            np.testing.assert_array_equal(samples.x, ref_samples.x)
+
+
 def test_chain_seeds_a_mixture_from_the_grid(key):
     """VEGAS+ finds the peaks; a mixture seeded from its weighted samples puts a component on
     each, is refitted, and the combined estimate of every kept round is unbiased and beats the

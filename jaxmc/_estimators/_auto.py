@@ -84,7 +84,7 @@ from .._checks import is_concrete
 from .._diagnostics import power_law_tail, tail_of
 from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
-from ..fit import Integrand, VegasPlus
+from ..fit import Integrand, VegasPlus, run_adaptation
 from ..proposals import GaussianMixture, Grid, Mixture
 from ._adaptive import grid_bins
 from ._stream import QMC_REPLICAS, final_net, replica_points
@@ -200,34 +200,18 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 
 @eqx.filter_jit
 def _grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
-    """The first `active` of `rounds` VEGAS+ rounds from `grid`, the rest skipped, so one
-    compiled program serves the screening and the training stage (~1.5 s of a first call):
-    the first and last rounds' relative variance per evaluation, whether the last saw only
-    zeros, the state after it and its `Samples`. The rounds are those of `run_adaptation`."""
-    rule, integrand = VegasPlus(), Integrand(f, batched)
-    rule.check(grid, round_size)
-    carry, static = eqx.partition(rule.init(key, grid, round_size), eqx.is_array)
-
-    def step(carry, i):
-        state, est, samples = rule.step(key, i, eqx.combine(carry, static), integrand)
-        return eqx.partition(state, eqx.is_array)[0], est, samples
-
-    _, no_estimate, no_samples = jax.tree.map(
-        lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(step, carry, jnp.int32(0))
+    """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
+    skipped, so one compiled program serves the screening and the training stage: ~1.5 s
+    of a first call): the first and last rounds' relative variance per evaluation, whether
+    the last saw only zeros, the state after it and its `Samples`."""
+    parts, state, samples = run_adaptation(
+        VegasPlus(), key, Integrand(f, batched), grid, rounds, round_size, keep_samples=True,
+        active=active,
     )
-
-    def round_(loop, i):
-        def run(carry, _):
-            carry, est, samples = step(carry, i)
-            return (carry, samples), est
-
-        return jax.lax.cond(i < active, run, lambda *loop: (loop, no_estimate), *loop)
-
-    (carry, samples), parts = jax.lax.scan(round_, (carry, no_samples), jnp.arange(rounds))
     v_first, v_last = (
         _relative_variance(parts.mean[i], parts.variance[i]) * round_size for i in (0, active - 1)
     )
-    return v_first, v_last, jnp.all(parts.mean[active - 1] == 0), eqx.combine(carry, static), samples
+    return v_first, v_last, jnp.all(parts.mean[active - 1] == 0), state, samples
 
 
 def seeded_mixture(grid: Grid, samples) -> Mixture:

@@ -110,9 +110,14 @@ def run_adaptation(
     *,
     keep_samples: bool = False,
     progress: bool = False,
+    active: jax.Array | None = None,
 ) -> tuple[Estimate, Any, Samples | None]:
     """`iterations` rounds of `rule` in one `lax.scan` (with `progress`, each round's
     estimate is sent to the progress bar, `jaxmc._progress.report`).
+
+    With `active` (a traced count), only the first `active` rounds run; the rest
+    leave the state and the kept samples as they were and estimate zeros, so one
+    compiled program serves any number of rounds up to `iterations`.
 
     **Returns:** the per-round estimates (stacked), the rule's final state
     (`rule.proposal(state)` is the adapted proposal), and, with `keep_samples`,
@@ -130,22 +135,29 @@ def run_adaptation(
                                est.mean, est.stderr, (i + 1) * n, i == iterations - 1)
         return new_carry, (est, samples)
 
+    zeros = lambda shapes: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)  # noqa: E731
+    no_estimate, no_samples = zeros(jax.eval_shape(lambda c: round_(c, jnp.int32(0))[1], carry))
+
+    def guarded(body):  # rounds from `active` on are skipped
+        if active is None:
+            return body
+        return lambda c, i: jax.lax.cond(i < active, body, lambda c, _: (c, no_estimate), c, i)
+
     if not keep_samples:
 
         def round_estimate(c, i):
             new_carry, (est, _) = round_(c, i)
             return new_carry, est
 
-        carry, parts = jax.lax.scan(round_estimate, carry, jnp.arange(iterations))
+        carry, parts = jax.lax.scan(guarded(round_estimate), carry, jnp.arange(iterations))
         return parts, eqx.combine(carry, static), None
 
     # Carry the latest round's samples (not stacked over rounds: bounded memory).
-    shapes = jax.eval_shape(lambda c: round_(c, jnp.int32(0))[1][1], carry)
-    empty = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-
     def round_keep(c, i):
         new_carry, (est, samples) = round_(c[0], i)
         return (new_carry, samples), est
 
-    (carry, samples), parts = jax.lax.scan(round_keep, (carry, empty), jnp.arange(iterations))
+    (carry, samples), parts = jax.lax.scan(
+        guarded(round_keep), (carry, no_samples), jnp.arange(iterations)
+    )
     return parts, eqx.combine(carry, static), samples
