@@ -39,8 +39,8 @@ def test_auto_chooses_qmc_on_a_smooth_integrand_and_the_grid_on_a_narrow_peak():
     # Every evaluation is counted, the pilot's too: the pilot's, then R whole nets of 2^k.
     streamed = int(smooth.n) - sum(smooth.pilot.evaluations)
     assert sum(smooth.pilot.evaluations) < 200_000 / 16 and smooth.n <= 200_000
-    net = 1 << int(np.log2(streamed / 5))
-    assert streamed % net == 0 and 5 <= streamed // net <= 9
+    net = 1 << int(np.log2(streamed / 7))
+    assert streamed % net == 0 and 7 <= streamed // net <= 13
 
 
 def test_auto_credits_qmc_with_plain_mc_under_a_power_law_tail():
@@ -167,20 +167,3 @@ def test_auto_is_differentiable_with_a_fixed_budget():
     g = jax.grad(lambda a: jaxmc.integrate(key, lambda x: jnp.exp(a * x), 0.0, 1.0, n=2**16).mean)
     assert abs(float(g(1.0)) - 1.0) < 1e-4
 
-
-def test_qmc_stream_runs_within_a_limit(key):
-    # The one QMC program "auto" streams, run within fewer evaluations than its plan: only
-    # the replicas whose nets fit are kept (their spread gives the error), and with a limit
-    # of the whole plan the run is the same as without one.
-    from jaxmc._estimators._integrate import _blocks_mesh, _Run
-
-    lo, hi = box(3)
-    zero = jnp.asarray(0.0, lo.dtype)
-    run = _Run(cos_product, lo, hi, 2**14, _blocks_mesh(None), False, False, False, zero, zero)
-    full = run.qmc(key, 2**16)  # 2^13 points x 8 replicas
-    assert int(full.n) == 2**16
-    same = run.qmc(key, 2**16, limit=2**16)
-    np.testing.assert_array_equal(np.asarray(same.mean), np.asarray(full.mean))
-    part = run.qmc(key, 2**16, limit=3 * 2**13 + 100)
-    assert int(part.n) == 3 * 2**13
-    assert abs(float(part.mean) - np.sin(1.0) ** 3) < 5 * float(part.stderr)

@@ -149,12 +149,6 @@ def pilot_qmc_points(budget: int) -> int:
     return min(max(1 << int(math.floor(math.log2(share))), 64), 4096)
 
 
-def qmc_budget(budget: int, rounds: int, round_size: int) -> int:
-    """The most evaluations the pilot leaves to QMC's stream: after its QMC pilot and
-    the grid's screening rounds (the plan of the one QMC program, run within what is left)."""
-    return budget - pilot_qmc_points(budget) * QMC_REPLICAS - min(SCREEN_ROUNDS, rounds) * round_size
-
-
 def _relative_variance(mean, variance) -> jax.Array:
     """Variance scaled by the squared mean (summed over components); scale-free."""
     mean2 = jnp.maximum(mean**2, jnp.finfo(mean.dtype).tiny)
@@ -356,7 +350,7 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_screen, key_train, key_mixture = jax.random.split(key, 4)
     screen = min(SCREEN_ROUNDS, rounds)
-    screened_rest = qmc_budget(budget, rounds, round_size)  # after a clear win or a screen
+    screened_rest = budget - qmc_n - screen * round_size  # after a clear win or a screen
     # In one dimension a grid is any piecewise-constant density: a mixture adds nothing.
     mixture_n = 0 if tolerant or lo.size == 1 else min(round_size, MIXTURE_PILOT_POINTS)
     trained_rest = budget - qmc_n - rounds * round_size - mixture_n

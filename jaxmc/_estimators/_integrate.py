@@ -45,7 +45,7 @@ from ._adaptive import (
     train_vegas_plus,
     training_rounds,
 )
-from ._auto import Pilot, qmc_budget, run_pilot
+from ._auto import Pilot, run_pilot
 from ._stream import plan, stream_on_mesh
 
 
@@ -120,12 +120,12 @@ def integrate(
           $R$ independently scrambled Sobol' sequences, each walked block by
           block as one growing net; the mean is their average and the variance
           $s^2/R$ from their spread. With `n`, each replica gets the largest
-          power of two of points that 5 replicas fit in and the rest of the
-          budget buys more replicas ($R$ = 5…9); with a tolerance $R = 8$ and
+          power of two of points that 7 replicas fit in and the rest of the
+          budget buys more replicas ($R$ = 7…13); with a tolerance $R = 8$ and
           the stopping rule is checked when each replica holds a power of two
           of points. Few replicas make the error bar itself uncertain (Student's
           $t$ with $R - 1$ degrees of freedom: a 2-sigma interval covers about
-          88% at $R$ = 5, 91% at 8). On smooth integrands the error falls like $n^{-1}$
+          91% at $R$ = 7 or 8). On smooth integrands the error falls like $n^{-1}$
           or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
           than plain MC (Owen's scrambled nets), in any dimension.
         - `"adaptive"`: VEGAS+ (`jaxmc.fit.VegasPlus`) in rounds of about
@@ -225,8 +225,7 @@ def integrate(
                                                 block, tolerant)
         spent = sum(pilot.evaluations)
         branches = (
-            # One QMC program whatever the pilot spent: planned for the most it can leave.
-            lambda: run.qmc(key, qmc_budget(budget, rounds, block), spent, limit=rest),
+            lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
             # i.i.d. from the mixture the pilot seeded from the grid.
@@ -282,14 +281,12 @@ class _Run:
         self.rtol, self.atol = rtol, atol
         self.d = 1 if lo.ndim == 0 else lo.shape[0]
 
-    def _stream(self, key, frozen, run_plan, done=0, limit=None):
-        """Stream `run_plan` (within `limit` evaluations, if less than its budget), `done`
-        evaluations (a pilot's, a training's) already spent."""
-        limit = run_plan.budget if limit is None else min(limit, run_plan.budget)
-        with progress_bar(self.progress, done + limit, done):
+    def _stream(self, key, frozen, run_plan, done=0):
+        """Stream `run_plan`, `done` evaluations (a pilot's, a training's) already spent."""
+        with progress_bar(self.progress, done + run_plan.budget, done):
             return stream_on_mesh(
-                key, frozen, self.lo, self.hi, self.rtol, self.atol, jnp.int32(limit), f=self.f,
-                plan=run_plan, mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,
+                key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
+                mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,
                 batched=self.batched,
             )
 
@@ -298,10 +295,8 @@ class _Run:
                         tolerant=self.tolerant)
         return self._stream(key, frozen, run_plan, done)
 
-    def qmc(self, key, budget, done=0, limit=None):
-        """Randomised QMC planned for `budget` evaluations, run within `limit` of them."""
-        run_plan = plan("qmc", budget, self.chunk, self.mesh.size, self.d, tolerant=self.tolerant)
-        return self._stream(key, None, run_plan, done, limit)
+    def qmc(self, key, budget, done=0):
+        return self.block_method("qmc", key, budget, done)
 
     def adaptive(self, key, budget, grid):
         """Train a VEGAS+ grid from `grid`, then refine and stream on it (`_adaptive`)."""

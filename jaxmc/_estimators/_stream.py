@@ -28,12 +28,6 @@ Three kinds of statistical unit are used:
   With a tolerance the loop checks it only when each replica holds a power of
   two of points (QMCPy's `CubQMCNetG` and SciPy's `qmc_quad` sample nets the
   same way).
-
-A run may spend less than its plan: `limit`, a traced count of evaluations,
-keeps randomised QMC to the replicas (with a tolerance, the blocks) that fit in
-it, the others' blocks masked away (fixed budget) or never reached (tolerance).
-One compiled program then serves every budget up to the plan's, which is how
-`"auto"` streams the same QMC program whatever its pilot spent.
 """
 
 from __future__ import annotations
@@ -75,10 +69,12 @@ QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence with a toleranc
 # n^-1.5 the variance of the mean grows like replicas^2 for a given budget, so fewer, larger
 # nets are more accurate; but the error bar has replicas - 1 degrees of freedom, and
 # mean +- 2 stderr covers P(|t_{R-1}| <= 2): 0.88 with 5 replicas (measured 0.88 on a 4-D
-# discontinuity and an 8-D half-space), 0.908 with 7, 0.914 with 8, 0.94 with 16. Five let
-# a budget of 1e5 (less auto's pilot) have nets of 2^14, where 7 would have 2^13: on smooth
-# Genz integrands 2.5-8x less variance, for 0.03 less coverage.
-QMC_MIN_REPLICAS = 5
+# discontinuity and an 8-D half-space), 0.908 with 7, 0.914 with 8, 0.94 with 16. Seven
+# let a budget of 1e6 have nets of 2^17 (8 would halve them: 4x the variance at a rate n^-2).
+# Five would give a budget of 1e5 (less auto's pilot) nets of 2^14 instead of 2^13, 2.5-8x
+# less variance on smooth Genz integrands, but a 2-sigma coverage of 0.88, and 6 replicas
+# covered 0.88-0.90 over 200 keys (the coverage benchmark): below its band [0.9, 0.99].
+QMC_MIN_REPLICAS = 7
 
 
 class Plan(eqx.Module):
@@ -114,7 +110,7 @@ def plan(
 
     Randomised QMC with a fixed budget gives each replica the largest power of
     two of points that `QMC_MIN_REPLICAS` replicas fit in (whole nets, where its
-    error is smallest) and spends what is left on more replicas (5 to 9);
+    error is smallest) and spends what is left on more replicas (7 to 13);
     with a tolerance there are `QMC_REPLICAS` and the nets grow.
     """
     strata: tuple[int, ...] = ()
@@ -206,28 +202,20 @@ def _one_hot_moments(m: Moments, slot: jax.Array, slots: int) -> Moments:
     return Moments(count, place(m.mean), place(m.m2), m.tail)
 
 
-def stream_estimate(total: Moments, evaluations, bad, replicas: int, active=None) -> Estimate:
-    """The estimate of a run's moments: i.i.d. units, or the spread of `replicas` means
-    (of the first `active` of them, a traced count, when given)."""
+def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate:
+    """The estimate of a run's moments: i.i.d. units, or the spread of `replicas` means."""
     if replicas == 1:
         return estimate_from_moments(total, evaluations, bad)
     means = total.mean
-    if active is None:
-        mean = jnp.mean(means, axis=0)
-        var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
-    else:
-        used = jnp.reshape(jnp.arange(replicas) < active, (replicas,) + (1,) * (means.ndim - 1))
-        r = active.astype(means.dtype)
-        mean = jnp.sum(jnp.where(used, means, 0), axis=0) / r
-        var = jnp.sum(jnp.where(used, (means - mean) ** 2, 0), axis=0) / (r * (r - 1))
+    mean = jnp.mean(means, axis=0)
+    var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
     var, conservative = bounded_variance(var, mean, total.tail)
     return Estimate(**diagnosed(mean, var, evaluations, bad, total.tail, conservative))
 
 
 @partial(eqx.filter_jit)
-def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, progress, batched):
-    """Evaluate `plan.blocks` blocks (or fewer, once a tolerance is met, or to stay
-    within `limit` evaluations with randomised QMC) and reduce them."""
+def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress, batched):
+    """Evaluate `plan.blocks` blocks (or fewer, once a tolerance is met) and reduce them."""
     method = plan.method
     d = 1 if lo.ndim == 0 else lo.shape[0]
     dtype = lo.dtype
@@ -238,15 +226,6 @@ def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, p
             jax.random.split(key, plan.replicas)
         )
         log2_block = plan.block.bit_length() - 1
-    # Within `limit`: with a fixed budget, the replicas whose nets fit (>= 2); with a
-    # tolerance, the blocks (whole rounds of the replicas) that fit.
-    active, blocks = None, plan.blocks
-    if method == "qmc" and not tolerant:
-        active = jnp.clip(limit // (plan.budget // plan.replicas), 2, plan.replicas)
-    elif method == "qmc":
-        rounds = limit // (plan.block * plan.replicas)
-        blocks = jnp.clip(rounds * plan.replicas, plan.replicas, plan.blocks)
-    estimate = partial(stream_estimate, replicas=plan.replicas, active=active)
 
     def points_of_block(b):
         """The block's points `x` and their density `p(x)`."""
@@ -279,8 +258,6 @@ def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, p
         y, bad = ratio(fx, px)
         index = b * plan.block + jnp.arange(plan.block)
         valid = (index < plan.budget) & inside
-        if active is not None:
-            valid = valid & (b % plan.replicas < active)
         m = block_moments(y, valid)
         if not per_sample:
             # The block is one randomisation: one observation, its mean.
@@ -295,9 +272,9 @@ def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, p
     def local(t, device):
         # Device j takes slots [j * per_device, (j + 1) * per_device) of step t's blocks.
         slot = device * plan.per_device + jnp.arange(plan.per_device, dtype=jnp.int32)
-        block = t * plan.per_step + slot
-        inside = (slot < plan.per_step) & (block < blocks)
-        m, evaluations, bad = jax.vmap(moments_of_block)(block, inside)
+        blocks = t * plan.per_step + slot
+        inside = (slot < plan.per_step) & (blocks < plan.blocks)
+        m, evaluations, bad = jax.vmap(moments_of_block)(blocks, inside)
         return merge_all(m), jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
 
     # One device needs no collectives (and `stream_on_mesh` no shard_map): compiles stay short.
@@ -311,7 +288,7 @@ def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, p
         m, e, b = sharded(t)
         carry = (merge(total, m), evaluations + e, bad + b)
         if progress:
-            _report(estimate(*carry), plan.budget, mesh, last=False)
+            _report(stream_estimate(*carry, plan.replicas), plan.budget, mesh, last=False)
         return carry
 
     if not tolerant:
@@ -320,11 +297,9 @@ def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, p
         )
     else:
 
-        steps = -(-blocks // plan.per_step)
-
         def cond(state):
             t, carry = state
-            est = estimate(*carry)
+            est = stream_estimate(*carry, plan.replicas)
             tol = jnp.maximum(atol, rtol * jnp.abs(est.mean))
             # At least two units before trusting a variance estimate; randomised QMC
             # only at powers of two per replica (whole nets), i.e. after 1, 2, 4, ... steps.
@@ -333,18 +308,18 @@ def stream(key, frozen, lo, hi, rtol, atol, limit, *, f, plan, mesh, tolerant, p
             else:
                 units = (t >= 1) & ((t & (t - 1)) == 0)
             converged = units & jnp.all(est.stderr <= tol)
-            return (t < steps) & ~converged
+            return (t < plan.steps) & ~converged
 
         _, carry = jax.lax.while_loop(
             cond, lambda s: (s[0] + 1, step(s[1], s[0])), (zero, (start, zero, zero))
         )
-    est = estimate(*carry)
+    est = stream_estimate(*carry, plan.replicas)
     if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
         _report(est, plan.budget, mesh, last=True)
     return est
 
 
-def stream_on_mesh(key, frozen, lo, hi, rtol, atol, limit, *, f, mesh, batched, **settings):
+def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **settings):
     """`stream`, each device of `mesh` running its share of the blocks under `shard_map`.
 
     The arrays enter `shard_map` as arguments, replicated: it may not close over
@@ -353,7 +328,7 @@ def stream_on_mesh(key, frozen, lo, hi, rtol, atol, limit, *, f, mesh, batched, 
     in a mesh context) rules `shard_map` out: one program then runs every
     device's blocks, and the compiler places it (a `vmap`'s batch stays sharded).
     """
-    args = (key, frozen, lo, hi, rtol, atol, limit)
+    args = (key, frozen, lo, hi, rtol, atol)
     settings = dict(settings, f=f, mesh=mesh, batched=batched)
     if mesh.size == 1:
         return stream(*args, **settings)
