@@ -167,3 +167,20 @@ def test_auto_is_differentiable_with_a_fixed_budget():
     g = jax.grad(lambda a: jaxmc.integrate(key, lambda x: jnp.exp(a * x), 0.0, 1.0, n=2**16).mean)
     assert abs(float(g(1.0)) - 1.0) < 1e-4
 
+
+def test_qmc_pilot_fits_the_rate_of_its_nets():
+    # The pilot's nets at an eighth, a quarter, a half and the whole of their 512 points
+    # (least squares in log-log): a smooth integrand shows scrambled nets' rate, variance
+    # near n^-3 (r = 2; measured 0.9-2.0 over keys on cos_product in 2-D, median 1.9), a
+    # 4-D peak the nets cannot resolve shows plain Monte Carlo's (r = 0 on every key).
+    from jaxmc._estimators._auto import _qmc_pilot
+
+    def rate(f, d, seed):
+        lo, hi = box(d)
+        v = [_qmc_pilot(jax.random.key(seed), lo, hi, f=f, per_replica=512, growth=jnp.asarray(g),
+                        batched=False) for g in (1.0, 2.0)]
+        assert not bool(v[0].blind)
+        return float(np.log2(v[0].variance / v[1].variance))
+
+    assert np.median([rate(cos_product, 2, seed) for seed in range(5)]) > 1.5
+    assert max(rate(peak(4, s=0.1), 4, seed) for seed in range(3)) < 0.5
