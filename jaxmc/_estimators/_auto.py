@@ -19,12 +19,12 @@ The candidates:
   benchmark's integrands (median of 4 keys), the fitted rate was within 0.6 of
   the realised one on 26 of the 36 Genz cells, at most 1.0 above it (the 16-D
   oscillatory at 1e5) and 1.3 below, and near 0 on the peaks QMC cannot
-  resolve, where the realised rate is too; the smaller of two ratios of quarter, half and
-  whole nets that it replaced read 0 on most and left QMC 10-300x
-  pessimistic. The same points, each
-  uniform, also give plain Monte Carlo's variance: when QMC beats it by
-  `QMC_CLEAR_WIN` per evaluation, the integrand is smooth at this scale, no
-  grid gains that much, and the grid is not trained. A pilot whose mean a
+  resolve, where the realised rate is too; the smaller of two ratios of
+  quarter, half and whole nets that it replaced read 0 on most and left QMC
+  10-300x pessimistic. The same points, each uniform, also give plain Monte
+  Carlo's variance: when QMC beats it by `QMC_CLEAR_WIN` per evaluation, the
+  integrand is smooth at this scale, no grid gains that much, and the grid is
+  not trained. A pilot whose mean a
   handful of points carried (effective sample size below `MIN_PILOT_ESS`:
   a narrow peak) measured nothing. Values with a power-law tail (Pareto
   $\hat k > 0.2$: an unbounded integrand such as $x^{-1/2}$) keep QMC near
@@ -181,8 +181,8 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 
     # The first half (quarter, eighth) of a net is a net: its variance at four sizes.
     sizes = [per_replica >> k for k in (3, 2, 1, 0)]
-    log_v = jnp.log2(jnp.stack([relative_variance_per_evaluation(y[:, :m]) for m in sizes]))
-    full = 2.0 ** log_v[-1]
+    by_size = jnp.stack([relative_variance_per_evaluation(y[:, :m]) for m in sizes])
+    full = by_size[-1]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
     mean = jnp.mean(flat, axis=0)
     plain = _relative_variance(mean, jnp.var(flat, axis=0, ddof=1))
@@ -194,7 +194,8 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
     # shows across its four sizes (least squares in log-log: each size's figure is an
     # 8-replica variance, noisy): n^-(1+r) per replica, r in [0, MAX_QMC_RATE], 0 being
     # plain MC's rate.
-    rate = -jnp.sum(jnp.asarray([-1.5, -0.5, 0.5, 1.5], log_v.dtype) * log_v) / 5.0
+    doublings = jnp.arange(len(sizes), dtype=full.dtype) - (len(sizes) - 1) / 2  # centred log2(m)
+    rate = -jnp.sum(doublings * jnp.log2(by_size)) / jnp.sum(doublings**2)
     rate = jnp.clip(jnp.where(jnp.isfinite(rate), rate, 0.0), 0.0, MAX_QMC_RATE)
     projected = full * jnp.asarray(growth, full.dtype) ** -rate
     # An unbounded integrand (a power-law tail of the values, k-hat > 0.2) keeps QMC's
