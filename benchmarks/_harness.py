@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import math
 import statistics
 import sys
 import time
@@ -12,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 
 
 @dataclasses.dataclass
@@ -80,6 +82,19 @@ def time_call(fn: Callable[[], Any], *, repeats: int = 5) -> Timing:
         output = jax.block_until_ready(fn())
         seconds.append(time.perf_counter() - start)
     return Timing(tuple(seconds), output)
+
+
+def covered(errors, stderrs, dofs, sigmas: float) -> np.ndarray:
+    """Whether each |error| is within the interval of nominal level P(|Z| <= `sigmas`)
+    (`sigmas` standard errors for a normal error bar, Student's t quantile of that level for
+    one with `dofs` degrees of freedom: `Estimate.interval`). A NaN error bar covers nothing."""
+    import jaxmc
+
+    level = math.erf(sigmas / math.sqrt(2))
+    dofs = np.asarray(dofs, dtype=float)
+    half_widths = np.asarray(jaxmc.stats.student_t_quantile(0.5 + level / 2, dofs), dtype=float)
+    with np.errstate(invalid="ignore"):
+        return np.abs(np.asarray(errors, float)) <= half_widths * np.asarray(stderrs, float)
 
 
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:

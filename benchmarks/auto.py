@@ -25,8 +25,11 @@ float64, on `SEEDS` independent seeds each:
 
 Per (case, N) and library: `relerr`, the RMS over seeds of (estimate − I)/I;
 `ms`, the median steady-state wall time of one call; efficiency
-$1/(\mathrm{relerr}^2 \cdot t)$; `cov`, the share of seeds with
-|estimate − I| ≤ 2 stderr (≈ 0.95 for an honest Gaussian error); `ratio`,
+$1/(\mathrm{relerr}^2 \cdot t)$; `cov`, the share of seeds whose interval of
+nominal level 0.954 holds I: |estimate − I| ≤ 2 stderr for a normal error bar,
+$t_{0.977,\nu}$ stderr for one with $\nu$ degrees of freedom (the spread of
+$\nu + 1$ replicas: jaxmc's `Estimate.dof`, $\nu = 7$ for SciPy's 8 scrambles),
+as `Estimate.interval(0.954)` gives; `ratio`,
 jaxmc's efficiency over the better of vegas's and SciPy's (> 1: jaxmc ahead).
 `JAXMC_METHOD` (environment variable of the same name, default "auto") runs
 the same comparison for another method of `integrate`.
@@ -46,7 +49,7 @@ import jax
 import numpy as np
 
 from . import problems
-from ._harness import Context, Result, markdown_table, optional_import, pyplot, time_call
+from ._harness import Context, Result, covered, markdown_table, optional_import, pyplot, time_call
 from .problems import Problem
 
 
@@ -113,7 +116,7 @@ def _cases(quick: bool) -> list[Case]:
 
 
 # ----------------------------------------------------------------------------
-# One call per library: (estimate, stderr, evaluations, extra) for one seed.
+# One call per library: (estimate, stderr, evaluations, extra, degrees of freedom) for one seed.
 
 
 def _jaxmc_call(problem: Problem, n: int) -> Callable[[int], tuple]:
@@ -127,7 +130,8 @@ def _jaxmc_call(problem: Problem, n: int) -> Callable[[int], tuple]:
         )
         est = jax.block_until_ready(est)
         method = getattr(est, "method", None)
-        return float(est.mean), float(est.stderr), int(est.n), "?" if method is None else str(method)
+        chose = "?" if method is None else str(method)
+        return float(est.mean), float(est.stderr), int(est.n), chose, float(est.dof)
 
     return call
 
@@ -146,7 +150,8 @@ def _vegas_call(problem: Problem, n: int) -> Callable[[int], tuple]:
         integ = vegas.Integrator(bounds)
         training = integ(fb, nitn=VEGAS_NITN, neval=warm)  # adapts the map; result discarded
         result = integ(fb, nitn=VEGAS_NITN, neval=final)
-        return result.mean, result.sdev, training.sum_neval + result.sum_neval, f"Q={result.Q:.2f}"
+        note = f"Q={result.Q:.2f}"
+        return result.mean, result.sdev, training.sum_neval + result.sum_neval, note, math.inf
 
     return call
 
@@ -169,7 +174,9 @@ def _scipy_call(problem: Problem, n: int) -> Callable[[int], tuple]:
             lambda x: problem.numpy_f(x.T), lo, hi, n_estimates=SCIPY_ESTIMATES, n_points=m,
             qrng=qrng,
         )
-        return float(res.integral), float(res.standard_error), SCIPY_ESTIMATES * m, ""
+        # (Its standard error is the spread of the scrambles: SCIPY_ESTIMATES - 1 dof.)
+        return (float(res.integral), float(res.standard_error), SCIPY_ESTIMATES * m, "",
+                SCIPY_ESTIMATES - 1.0)
 
     return call
 
@@ -189,6 +196,7 @@ def _measure(call: Callable[[int], tuple], seeds: int, exact: float, compiles: b
         return {"error": f"{type(error).__name__}: {error}"[:200]}
     means = np.array([o[0] for o in outputs], dtype=float)
     stderrs = np.array([o[1] for o in outputs], dtype=float)
+    dofs = np.array([o[4] for o in outputs], dtype=float)
     relerr = float(np.sqrt(np.mean(((means - exact) / exact) ** 2)))
     steady = seconds[1:] if compiles and len(seconds) > 1 else seconds
     t = statistics.median(steady)
@@ -198,11 +206,12 @@ def _measure(call: Callable[[int], tuple], seeds: int, exact: float, compiles: b
         "seconds": t,
         "first_s": seconds[0],
         "efficiency": 1 / (relerr**2 * t) if relerr > 0 else math.inf,
-        "coverage": float(np.mean(np.abs(means - exact) <= COVERAGE_SIGMAS * stderrs)),
+        "coverage": float(np.mean(covered(means - exact, stderrs, dofs, COVERAGE_SIGMAS))),
         "evals": float(np.mean([o[2] for o in outputs])),
         "note": outputs[-1][3],
         "means": means.tolist(),
         "stderrs": stderrs.tolist(),
+        "dofs": dofs.tolist(),
     }
 
 
@@ -351,7 +360,9 @@ def _run(ctx: Context) -> Result:
         f"jaxmc method {JAXMC_METHOD!r}; {seeds} seeds per (case, N); float64 throughout. "
         "`relerr`: RMS over seeds of (estimate − I)/I; `ms`: median wall time of one "
         "steady-state call (jaxmc's first, compiling call apart, in `1st call s`); `eff` = "
-        "1/(relerr² · s); `cov`: share of seeds with |estimate − I| ≤ 2 stderr; `evals/N`: "
+        "1/(relerr² · s); `cov`: share of seeds with |estimate − I| ≤ 2 stderr, or the "
+        "Student-t quantile of the same level (0.954) for an error bar with few degrees of "
+        "freedom (jaxmc's `Estimate.dof`; 7 for SciPy's 8 scrambles); `evals/N`: "
         "integrand evaluations per call over N; `ratio`: jaxmc's eff over the better of "
         "vegas's and SciPy's (> 1: jaxmc ahead); `auto chose`: the method `integrate` "
         "reports (`?` when it does not say). vegas: `integ(f, nitn=10, neval=N/40)` discarded, "

@@ -3,7 +3,10 @@ r"""Coverage: can each method's error bar be believed, and do the diagnostics sa
 For every (method, integrand) cell, `SEEDS` independent runs at a modest budget
 $n$, in float64. Each run gives $z = (\hat I - I)/\widehat{\mathrm{se}}$; an
 honest Gaussian error bar gives $P(|z| \le 1) \approx 0.683$ and
-$P(|z| \le 2) \approx 0.954$, and $E|z| = \sqrt{2/\pi} \approx 0.80$. Alongside,
+$P(|z| \le 2) \approx 0.954$, and $E|z| = \sqrt{2/\pi} \approx 0.80$. An error bar with
+$\nu$ degrees of freedom (`Estimate.dof`: the spread of $\nu + 1$ replicas) is read
+with Student's t, as `Estimate.interval` reads it: $|z|$ is first mapped to the
+normal $|z|$ of the same tail probability. Alongside,
 the share of runs that `jaxmc.stats.unreliable` flags (tiny `ess`, few non-zero
 values, Pareto $\hat k > 0.7$, dropped non-finite values, adaptive rounds that
 disagree, an unmet tolerance).
@@ -159,6 +162,7 @@ def _observe(est) -> dict[str, jax.Array]:
     return {
         "mean": est.mean,
         "stderr": est.stderr,
+        "dof": as_float(est.dof),
         "n": as_float(est.n),
         "flagged": as_float(jaxmc.stats.unreliable(est)),
         "ess": as_float(est.ess),
@@ -200,11 +204,26 @@ def _normal_quantile(level: float) -> float:
     return statistics.NormalDist().inv_cdf(0.5 + level / 2)
 
 
+def _normal_equivalent(absz: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """|z| of a t variable with `dof` degrees of freedom as the standard normal |z| with the
+    same tail probability (unchanged for infinite `dof`)."""
+    from scipy import stats
+
+    finite = np.isfinite(dof) & (dof > 0)
+    with np.errstate(invalid="ignore"):
+        tail = stats.t.sf(absz, np.where(finite, dof, 1.0))
+    return np.where(finite & np.isfinite(absz), stats.norm.isf(tail), absz)
+
+
 def summarise(method: str, case: Case, runs: dict[str, np.ndarray]) -> dict:
     """Coverage at 1 and 2 sigma and at `LEVELS`, mean |z|, the flagged share and the verdict."""
     with np.errstate(divide="ignore", invalid="ignore"):  # a zero error bar: |z| = inf
         z = (runs["mean"] - case.problem.exact) / runs["stderr"]
     absz = np.where(np.isnan(z), np.inf, np.abs(z))  # a NaN error bar covers nothing
+    # An error bar with few degrees of freedom (replicas) is read with Student's t: |z| is
+    # mapped to the normal |z| of the same two-sided tail, so every level below is the
+    # coverage of `Estimate.interval` at that level.
+    absz = _normal_equivalent(absz, runs["dof"])
     cov1, cov2 = float(np.mean(absz <= 1)), float(np.mean(absz <= 2))
     flagged = float(np.mean(runs["flagged"]))
     in_band = PASS_BAND[0] <= cov2 <= PASS_BAND[1]

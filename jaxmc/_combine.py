@@ -25,8 +25,10 @@ class Combined(Estimate):
     disagree, e.g. an adaptive density missed a peak), and `parts`, the inputs
     stacked along a leading axis, and `sequential`, whether they were weighted
     as successive adaptive rounds. Its `ess` and `n_nonzero` are the parts'
-    sums, its `pareto_k` the parts' average weighted as their means are, and it
-    is `conservative` when parts that are carry over half the weight.
+    sums, its `pareto_k` the parts' average weighted as their means are, it
+    is `conservative` when parts that are carry over half the weight, and its
+    `dof` is Welch and Satterthwaite's $(\sum_i a_i V_i)^2 / \sum_i (a_i V_i)^2/\nu_i$
+    for the pooled variance $\sum_i a_i V_i$ (infinite when every part's is).
     """
 
     chi2_dof: jax.Array
@@ -167,6 +169,14 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     safe_dof = jnp.where(has_dof, dof, 1.0)
     chi2_dof = jnp.where(has_dof, chi2 / safe_dof, 0.0)
     q = jnp.where(has_dof, gammaincc(safe_dof / 2.0, chi2 / 2.0), 1.0)
+    # Welch-Satterthwaite: the pooled variance sum_i a_i V_i (a_i = w_i^2 / (sum w)^2) has
+    # (sum a_i V_i)^2 / sum_i (a_i V_i)^2 / nu_i degrees of freedom (infinite for normal parts).
+    part_dof = _per_part(parts.dof, var)
+    term = jnp.where(measured, w**2 * safe_var, 0.0)
+    spread = jnp.sum(jnp.where(jnp.isfinite(part_dof) & (term > 0),
+                               term**2 / jnp.where(part_dof > 0, part_dof, 1.0), 0.0), axis=0)
+    total = jnp.sum(term, axis=0)
+    satterthwaite = jnp.where(spread > 0, total**2 / jnp.where(spread > 0, spread, 1.0), jnp.inf)
     # Diagnostics: effective sizes and non-zero counts add up; the tail shape is the
     # weight-averaged one of the parts that carry weight.
     share = w / safe_wsum
@@ -184,6 +194,7 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
         n_nonzero=jnp.where(known, jnp.sum(n_nonzero, axis=0, dtype=jnp.result_type(n_nonzero)), -1),
         pareto_k=jnp.where(informative, weighted_k, jnp.nan),
         conservative=jnp.sum(jnp.where(bounded, share, 0.0), axis=0) > 0.5,
+        dof=jnp.where(informative & ~any_exact, satterthwaite, jnp.inf),
         chi2_dof=chi2_dof,
         q=q,
         parts=parts,

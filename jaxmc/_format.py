@@ -149,7 +149,7 @@ def estimate_repr(e, base: type) -> str:
 
     The mean, its standard error, `n` and the diagnostics that are known
     (`n_nonfinite` unless 0; `ess` and `pareto_k` unless NaN: an estimate built
-    by hand; `conservative` when true), then the fields `e` adds to `base` (`Estimate`): stacked parts by
+    by hand; `dof` when finite; `conservative` when true), then the fields `e` adds to `base` (`Estimate`): stacked parts by
     their number, a nested module by its name. Equinox's repr (shapes and dtypes)
     when some field is not concrete (a tracer in `jit`).
     """
@@ -162,6 +162,8 @@ def estimate_repr(e, base: type) -> str:
     for name, spec in (("ess", ".1f"), ("pareto_k", ".2f")):
         if not np.all(np.isnan(np.asarray(getattr(e, name), float))):
             text[name] = number(getattr(e, name), spec)
+    if np.any(np.isfinite(np.asarray(getattr(e, "dof", np.inf), float))):
+        text["dof"] = number(e.dof, ".0f")
     if np.any(np.asarray(getattr(e, "conservative", False))):
         text["conservative"] = "True"
     own = {f.name for f in dataclasses.fields(base)}

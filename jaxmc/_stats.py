@@ -25,7 +25,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.scipy.special import ndtri
+from jax.scipy.special import betainc, ndtri
 
 from ._diagnostics import (
     ReliabilityWarning as ReliabilityWarning,
@@ -71,6 +71,10 @@ class Estimate(eqx.Module):
       replicas, strata or antithetic pairs) but the i.i.d. variance of the
       contributions, over 4 times larger, reported because a power-law tail
       makes the spread unreliable: an upper bound (`bounded_variance`).
+    - `dof`: degrees of freedom of `variance`: $R-1$ when it is the spread of $R$
+      replicas (randomised QMC), $\infty$ (normal) for sums of many i.i.d. values.
+      `interval` uses Student's $t$ with these; $\mathrm{mean} \pm 2\,\mathrm{stderr}$
+      covers $P(|t_{R-1}| \le 2)$: 0.88 for 5 replicas, 0.91 for 8.
 
     `print(est)` shows the compact notation of vegas and gvar, `0.9977(42)` for
     0.99771 ± 0.00423 (element by element for an array); `repr(est)` the numbers.
@@ -84,6 +88,7 @@ class Estimate(eqx.Module):
     n_nonzero: jax.Array = eqx.field(default=-1, kw_only=True)
     pareto_k: jax.Array = eqx.field(default=float("nan"), kw_only=True)
     conservative: jax.Array = eqx.field(default=False, kw_only=True)
+    dof: jax.Array = eqx.field(default=float("inf"), kw_only=True)
 
     @property
     def stderr(self) -> jax.Array:
@@ -91,10 +96,15 @@ class Estimate(eqx.Module):
         return jnp.sqrt(self.variance)
 
     def interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
-        r"""Normal-approximation (CLT) interval $\mathrm{mean} \pm z_{(1+\ell)/2}\,\mathrm{stderr}$."""
+        r"""Confidence interval $\mathrm{mean} \pm t_{(1+\ell)/2,\,\nu}\,\mathrm{stderr}$.
+
+        $t_{p,\nu}$ is Student's $t$ quantile with $\nu$ = `dof` degrees of freedom
+        (the spread of $R$ replicas has $R - 1$); for $\nu = \infty$ it is the
+        normal (CLT) quantile $z_p$.
+        """
         check_level(level)
-        z = ndtri(jnp.asarray(0.5 + level / 2, dtype=jnp.result_type(self.mean)))
-        half = z * self.stderr
+        p = jnp.asarray(0.5 + level / 2, dtype=jnp.result_type(self.mean))
+        half = student_t_quantile(p, self.dof) * self.stderr
         return self.mean - half, self.mean + half
 
     def chebyshev(self, delta: float) -> jax.Array:
@@ -114,6 +124,38 @@ class Estimate(eqx.Module):
     def __str__(self) -> str:
         """The mean and its standard error in the compact notation, e.g. `0.9977(42)`."""
         return estimate_str(self)
+
+
+@jax.jit
+def student_t_quantile(p: jax.Array, dof: jax.Array) -> jax.Array:
+    r"""The quantile $t_{p,\nu}$ of Student's $t$ with $\nu$ = `dof` degrees of freedom; the
+    normal quantile $z_p$ for $\nu = \infty$.
+
+    For $p > 1/2$: $P(T > t) = \frac12 I_{\nu/(\nu+t^2)}(\nu/2, 1/2)$ (the regularised
+    incomplete beta function), so $x = \nu/(\nu+t^2)$ solves $I_x(\nu/2, 1/2) = 2(1-p)$;
+    found by bisection on $(0, 1]$ (64 halvings, monotone in $x$: to the dtype's
+    resolution even for $\nu = 1$, where $t_{0.9995} \approx 637$), then $t =
+    \sqrt{\nu(1-x)/x}$; $t_{1-p} = -t_p$. Works under `jit`, no SciPy at run time.
+    """
+    p = jnp.asarray(p, dtype=jnp.result_type(p, float))
+    dof = jnp.asarray(dof, dtype=p.dtype)
+    finite = jnp.isfinite(dof) & (dof > 0)
+    nu = jnp.where(finite, dof, 1.0)
+    upper = jnp.where(p > 0.5, p, 1.0 - p)
+    target = 2.0 * (1.0 - upper)
+
+    def halve(_, bounds):
+        low, high = bounds
+        mid = 0.5 * (low + high)
+        below = betainc(nu / 2, jnp.asarray(0.5, p.dtype), mid) < target  # x too small
+        return jnp.where(below, mid, low), jnp.where(below, high, mid)
+
+    shape = jnp.broadcast_shapes(p.shape, nu.shape)
+    start = (jnp.zeros(shape, p.dtype), jnp.ones(shape, p.dtype))
+    low, high = jax.lax.fori_loop(0, 64, halve, start)
+    x = jnp.maximum(0.5 * (low + high), jnp.finfo(p.dtype).tiny)
+    t = jnp.sqrt(nu * (1.0 - x) / x)
+    return jnp.where(finite, jnp.where(p > 0.5, t, -t), ndtri(p))
 
 
 def check_level(level: float) -> None:
@@ -208,11 +250,16 @@ def diagnosed(
     n_nonfinite: jax.Array,
     tail: Tail,
     conservative: jax.Array | bool = False,
+    dof: jax.Array | float = float("inf"),
 ) -> dict[str, jax.Array]:
-    """`Estimate`'s fields from a mean, its variance and the `Tail` of its contributions:
-    the variance floored at the dtype's rounding error, and the diagnostics."""
+    """`Estimate`'s fields from a mean, its variance (with `dof` degrees of freedom) and the
+    `Tail` of its contributions: the variance floored at the dtype's rounding error, and the
+    diagnostics. A `conservative` variance is the i.i.d. one of all contributions: its
+    degrees of freedom are unbounded, whatever `dof` says."""
+    conservative = jnp.broadcast_to(jnp.asarray(conservative), jnp.shape(mean))
     return dict(
-        conservative=jnp.broadcast_to(jnp.asarray(conservative), jnp.shape(mean)),
+        conservative=conservative,
+        dof=jnp.where(conservative, jnp.inf, jnp.asarray(dof, jnp.result_type(mean))),
         mean=mean,
         variance=floored_variance(variance, tail),
         n=n,

@@ -5,7 +5,9 @@ estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$,
 eq. 13 of the lecture), the evaluation counts, and diagnostics of whether the
 error bar can be believed (`ess`, `n_nonzero`, `pareto_k`; `unreliable` and
 `reliability_reasons` read them). `combine` merges independent estimates by
-inverse-variance weights, as vegas does across its iterations. `Moments` are
+inverse-variance weights, as vegas does across its iterations. An error bar
+from few replicas has few degrees of freedom (`Estimate.dof`): its intervals
+use Student's t (`student_t_quantile`). `Moments` are
 the mergeable sufficient statistics `(count, mean, m2)` of a stream of values
 (Chan, Golub and LeVeque's update: `moments`, `merge`, `merge_all`).
 """
@@ -23,6 +25,7 @@ from ._stats import (
     merge as merge,
     merge_all as merge_all,
     moments as moments,
+    student_t_quantile as student_t_quantile,
 )
 
 
@@ -37,5 +40,6 @@ __all__ = [
     "moments",
     "reliability_reasons",
     "rounding_floor",
+    "student_t_quantile",
     "unreliable",
 ]

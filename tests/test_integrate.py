@@ -86,6 +86,18 @@ def test_block_methods_unbiased_honest_and_better_than_plain(method):
     assert np.var(means) < np.var(np.asarray(plain.mean)) / 4
 
 
+def test_qmc_error_bar_has_its_replicas_degrees_of_freedom():
+    # 5 * 512 evaluations: five nets of 512, so 4 degrees of freedom, and `interval` is
+    # Student's t; it covers at its level, where mean +- 1.96 stderr would cover ~0.88.
+    exact = np.sin(1.0) ** 3
+    ests = run_keys(lambda k: jaxmc.integrate(k, cos_product, LO, HI, n=5 * 512, method="qmc"),
+                    10, k=400)
+    assert np.all(np.asarray(ests.dof) == 4)
+    low, high = ests.interval(0.95)
+    covered = np.mean((np.asarray(low) <= exact) & (exact <= np.asarray(high)))
+    assert abs(covered - 0.95) < 5 * np.sqrt(0.95 * 0.05 / 400), covered
+
+
 def test_grad_with_fixed_budget():
     key = jax.random.key(5)
     g = jax.grad(lambda a: jaxmc.integrate(key, lambda x: jnp.exp(a * x), 0.0, 1.0, n=50_000, method="plain").mean)(1.0)

@@ -21,6 +21,44 @@ def test_interval_and_chebyshev_match_formulas():
     np.testing.assert_allclose(est.stderr, 0.5)
 
 
+def test_interval_is_student_t_with_the_estimates_degrees_of_freedom():
+    few = Estimate(jnp.asarray(2.0), jnp.asarray(0.25), jnp.asarray(100), jnp.asarray(0),
+                   dof=jnp.asarray(4.0))
+    low, high = few.interval(0.954)
+    t = scipy.stats.t.ppf(0.977, 4)
+    np.testing.assert_allclose([low, high], [2 - t * 0.5, 2 + t * 0.5], rtol=1e-9)
+    assert "dof=4" in repr(few)
+    # An Estimate built without `dof` is normal (the default, infinite) and says nothing.
+    normal = _estimate(2.0, 0.25)
+    assert np.isposinf(normal.dof) and "dof" not in repr(normal)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_student_t_quantile_is_symmetric_and_normal_at_infinite_dof(dtype):
+    from jaxmc.stats import student_t_quantile
+
+    p = jnp.asarray([0.6, 0.977, 0.9995], dtype)
+    for dof in (1.0, 4.0, 30.0):
+        q = student_t_quantile(p, jnp.asarray(dof, dtype))
+        assert q.dtype == dtype
+        np.testing.assert_allclose(q, scipy.stats.t.ppf(np.asarray(p, float), dof), rtol=1e-4)
+        np.testing.assert_allclose(student_t_quantile(1 - p, dof), -q, rtol=1e-4)
+    np.testing.assert_allclose(student_t_quantile(p, jnp.inf),
+                               scipy.stats.norm.ppf(np.asarray(p, float)), rtol=1e-5)
+
+
+def test_combine_counts_degrees_of_freedom_by_satterthwaite():
+    def part(dof):
+        return Estimate(jnp.asarray(1.0), jnp.asarray(0.01), jnp.asarray(100), jnp.asarray(0),
+                        dof=jnp.asarray(dof))
+
+    # Equal variances of 4 dof each: (2V)^2 / (2 V^2 / 4) = 8.
+    np.testing.assert_allclose(combine([part(4.0), part(4.0)]).dof, 8.0, rtol=1e-12)
+    # A normal part adds no uncertainty of its own: (2V)^2 / (V^2 / 4) = 16.
+    np.testing.assert_allclose(combine([part(4.0), part(jnp.inf)]).dof, 16.0, rtol=1e-12)
+    assert np.isposinf(combine([part(jnp.inf), part(jnp.inf)]).dof)
+
+
 @pytest.mark.parametrize("bad", [0.0, 1.0, 1.5, -0.1])
 def test_interval_rejects_bad_level(bad):
     with pytest.raises(ValueError, match="level"):
@@ -130,7 +168,8 @@ def test_combine_sequential_removes_most_of_the_bias_of_own_variances():
     values = rng.exponential(1.0, (k, parts))
     full = lambda v: jnp.full((k, parts), v)  # noqa: E731
     stacked = Estimate(jnp.asarray(values), jnp.asarray(values**2), full(10), full(0),
-                       ess=full(10.0), n_nonzero=full(10), pareto_k=full(0.0), conservative=full(False))
+                       ess=full(10.0), n_nonzero=full(10), pareto_k=full(0.0), conservative=full(False),
+                       dof=full(jnp.inf))
     bias = {}
     for sequential in (False, True):
         out = jax.vmap(lambda e: combine(e, sequential=sequential))(stacked)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxmc._estimators._qmc import student_t_quantile  # a private helper, tested directly
+from jaxmc._stats import student_t_quantile  # a private helper, tested directly
 from jaxmc.estimators import QMCEstimate, randomized_qmc, uniform
 
 from .helpers import (

@@ -9,65 +9,32 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.scipy.special import betainc
 
 from .._box import to_box
 from .._checks import MAX_COUNT, check_bounds, check_callable, check_count, check_key
 from .._diagnostics import bounded_variance
 from .._integrand import bind, evaluate, ratio
 from .._points._registry import unit_points
-from .._stats import Estimate, check_level, diagnosed, tail_of
+from .._stats import Estimate, diagnosed, tail_of
 
 
 POINT_SETS = ("sobol", "halton", "lattice", "latin_hypercube", "stratified")
 
 
-@jax.jit
-def student_t_quantile(p: Any, dof: Any) -> jax.Array:
-    r"""The quantile $t_{\nu}^{-1}(p)$ of Student's t with $\nu$ = `dof` degrees of freedom.
-
-    For $p > 1/2$: $P(T > t) = \frac12 I_{\nu/(\nu+t^2)}(\nu/2, 1/2)$, so $x =
-    \nu/(\nu+t^2)$ solves $I_x(\nu/2, 1/2) = 2(1-p)$; found by bisection (60
-    halvings, monotone in $x$), then $t = \sqrt{\nu(1-x)/x}$. Works under `jit`
-    and needs no SciPy at run time.
-    """
-    p = jnp.asarray(p, dtype=jnp.result_type(float))
-    dof = jnp.asarray(dof, dtype=p.dtype)
-    upper = jnp.where(p > 0.5, p, 1.0 - p)
-    target = 2.0 * (1.0 - upper)
-
-    def body(_, bounds):
-        a, b = bounds
-        mid = 0.5 * (a + b)
-        below = betainc(dof / 2, 0.5, mid) < target
-        return jnp.where(below, mid, a), jnp.where(below, b, mid)
-
-    a, b = jax.lax.fori_loop(0, 60, body, (jnp.zeros_like(p), jnp.ones_like(p)))
-    x = 0.5 * (a + b)
-    t = jnp.sqrt(dof * (1.0 - x) / x)
-    return jnp.where(p > 0.5, t, -t)
-
-
 class QMCEstimate(Estimate):
     r"""A randomised-QMC `Estimate` that remembers its number of `replicas`.
 
-    `variance` is $s^2/R$ from the spread of the $R$ replica means. With few
-    replicas the normal interval of `Estimate.interval` is too narrow; use
-    `t_interval`, Student's t with $R - 1$ degrees of freedom, as
-    `scipy.integrate.qmc_quad` reports.
+    `variance` is $s^2/R$ from the spread of the $R$ replica means, with `dof`
+    $R - 1$: `interval` is Student's t interval, as `scipy.integrate.qmc_quad`
+    reports (with few replicas the normal one would be too narrow).
     """
 
     replicas: int = eqx.field(static=True)
 
     def t_interval(self, level: float = 0.95) -> tuple[jax.Array, jax.Array]:
-        r"""$\mathrm{mean} \pm t_{R-1,(1+\ell)/2}\,\mathrm{stderr}$ (infinite for one replica)."""
-        check_level(level)
-        if self.replicas < 2:
-            inf = jnp.full_like(self.mean, jnp.inf)
-            return self.mean - inf, self.mean + inf
-        t = student_t_quantile(0.5 + level / 2, self.replicas - 1).astype(jnp.result_type(self.mean))
-        half = t * self.stderr
-        return self.mean - half, self.mean + half
+        r"""$\mathrm{mean} \pm t_{R-1,(1+\ell)/2}\,\mathrm{stderr}$ (infinite for one
+        replica): the same as `interval`, whose degrees of freedom are `dof` = $R - 1$."""
+        return self.interval(level)
 
 
 def _grid_counts(n: int, d: int) -> tuple[int, ...]:
@@ -190,6 +157,7 @@ def randomized_qmc(
             jnp.sum(bad, dtype=jnp.int32),
             tail,
             conservative,
+            dof=replicas - 1,
         ),
         replicas=replicas,
     )

@@ -67,14 +67,13 @@ BLOCK = 1 << 14  # samples per block; power of two so Sobol' blocks are (t, m, s
 QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence with a tolerance (as scipy's qmc_quad)
 # On a fixed budget: at least this many, and nets as large as that allows. At a QMC rate
 # n^-1.5 the variance of the mean grows like replicas^2 for a given budget, so fewer, larger
-# nets are more accurate; but the error bar has replicas - 1 degrees of freedom, and
-# mean +- 2 stderr covers P(|t_{R-1}| <= 2): 0.88 with 5 replicas (measured 0.88 on a 4-D
-# discontinuity and an 8-D half-space), 0.908 with 7, 0.914 with 8, 0.94 with 16. Seven
-# let a budget of 1e6 have nets of 2^17 (8 would halve them: 4x the variance at a rate n^-2).
-# Five would give a budget of 1e5 (less auto's pilot) nets of 2^14 instead of 2^13, 2.5-8x
-# less variance on smooth Genz integrands, but a 2-sigma coverage of 0.88, and 6 replicas
-# covered 0.88-0.90 over 200 keys (the coverage benchmark): below its band [0.9, 0.99].
-QMC_MIN_REPLICAS = 7
+# nets are more accurate; the error bar then has replicas - 1 degrees of freedom
+# (`Estimate.dof`), and `Estimate.interval` is Student's t: mean +- 2 stderr alone covers
+# P(|t_4| <= 2) = 0.88 with 5 replicas (measured 0.88 on a 4-D discontinuity and an 8-D
+# half-space), the t interval of the same level 0.954. Five give a budget of 1e5 (less
+# auto's pilot) nets of 2^14 instead of the 2^13 of seven: 2.5-8x less variance on smooth
+# Genz integrands; 1e6 has nets of 2^17 either way.
+QMC_MIN_REPLICAS = 5
 
 
 class Plan(eqx.Module):
@@ -110,7 +109,7 @@ def plan(
 
     Randomised QMC with a fixed budget gives each replica the largest power of
     two of points that `QMC_MIN_REPLICAS` replicas fit in (whole nets, where its
-    error is smallest) and spends what is left on more replicas (7 to 13);
+    error is smallest) and spends what is left on more replicas (5 to 9);
     with a tolerance there are `QMC_REPLICAS` and the nets grow.
     """
     strata: tuple[int, ...] = ()
@@ -210,7 +209,8 @@ def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate
     mean = jnp.mean(means, axis=0)
     var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
     var, conservative = bounded_variance(var, mean, total.tail)
-    return Estimate(**diagnosed(mean, var, evaluations, bad, total.tail, conservative))
+    return Estimate(**diagnosed(mean, var, evaluations, bad, total.tail, conservative,
+                                dof=replicas - 1))
 
 
 @partial(eqx.filter_jit)
