@@ -32,14 +32,17 @@ The candidates:
   credited with plain MC's variance, never a clear win.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
-  $\sigma^2_m$ of its last round. A young grid's variance says little of the
+  $\sigma^2_m$ of its last round, or the scatter of its last `SCATTER_ROUNDS`
+  rounds' means (their geometric mean) where that round's own variance is
+  `SCATTER_TRUST` times above it (a round's variance comes from pairs in hypercubes, which a peak
+  the grid has not yet resolved inflates: 100-1000x what the grid then
+  realised on a 16-D camel, a 5-D posterior and a corner singularity). A young grid's variance says little of the
   trained one's (measured after 3 and 10 rounds: from 10x worse, on a 16-D
   discontinuity, to 1000x better, on a 5-D posterior), so the grid is dropped
-  after `SCREEN_ROUNDS` rounds only when, projected to the end of its training
-  at the rate its variance fell from the first round to the third, it would
-  still be `SCREEN_MARGIN` times costlier than a QMC pilot that measured the
-  integrand (a young grid on the 8-D i-flow Gaussian was dropped at 80 against
-  QMC's 18, then trained to 0.35); otherwise it trains in full
+  after `SCREEN_ROUNDS` rounds only when, as it stands, it is `SCREEN_MARGIN`
+  times costlier than a QMC pilot that measured the integrand (a young grid on
+  the 8-D i-flow Gaussian measured 80 against QMC's 18, then trained to 0.35);
+  otherwise it trains in full
   and the choice is made on the trained grid. If the grid wins it goes on
   as `method="adaptive"` does after training (refining rounds, then with a
   tolerance a frozen stream); if QMC wins, the training was the price of knowing.
@@ -117,7 +120,28 @@ MIXTURE_MAX_VARIANCE = 9.0
 MIXTURE_FLOOR = 0.01
 QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
 SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
-SCREEN_MARGIN = 10.0  # a young grid this much costlier than QMC is not trained on
+# A young grid this much costlier than QMC is not trained on. Measured after 3 and 10
+# rounds, against QMC's projected cost, 4 keys of 19 of the `auto` benchmark's cases at 1e5
+# and 1e6: where QMC then won (Genz discontinuous and continuous, camel 4-D, annulus, ball
+# 3-D, half-space) the young grid was 2-11000x costlier, mostly over 20; where the grid or
+# its mixture won it was 0.01-2x (Gaussians, posterior, corner peak, x^-1/3), except the
+# 4-D corner singularity at 11-20x, on which the trained grid then measured 0.01-2.4x. The
+# grid's fall from its first round to its third said nothing of the rest (extrapolated, it
+# promised 1e-5 of QMC's cost on 8-D discontinuities that it ended at 10-300x).
+SCREEN_MARGIN = 20.0
+# The trained grid's figure: its last round's variance, unless that is SCATTER_TRUST times
+# the scatter of the last SCATTER_ROUNDS rounds' means; then the geometric mean of the two.
+# A round's variance is a sum over hypercubes of two or three points each: on a peak the
+# grid has not yet resolved, a few hypercubes' pairs carry it. Measured at 1e6 (4 keys;
+# relative variance per evaluation): last round / scatter / what `method="adaptive"` then
+# realised: i-flow camel 16-D 3e5-2e6 / 47-1000 / 376; 5-D posterior 550-1400 / 3-220 /
+# 2.6; 4-D corner singularity 0.35-0.5 / 0.001-0.013 / 0.009; elsewhere within 3x of each
+# other. But the scatter of 5 rounds has 4 degrees of freedom: an honest round variance is
+# 10x its scatter in 1.7% of runs (chi-square), 30x in 0.2%; at 10x, 2 of the `auto`
+# benchmark's 660 runs (vegas's 4-D Gaussian, the 3-D ball) left the mixture or QMC for a
+# grid that then erred 5x as much. Hence 30x, and the geometric mean.
+SCATTER_ROUNDS = 5
+SCATTER_TRUST = 30.0
 MIN_PILOT_ESS = 32.0  # fewer effective QMC pilot samples than this measure nothing
 MAX_NET_GROWTH = 32  # most the projection lets QMC's nets grow beyond the pilot's
 MAX_QMC_RATE = 2.0  # scrambled nets on smooth integrands: variance n^-3 (Owen 1997), r = 2
@@ -211,16 +235,26 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
 def _grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
     """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
     skipped, so one compiled program serves the screening and the training stage: ~1.5 s
-    of a first call): the first and last rounds' relative variance per evaluation, whether
-    the last saw only zeros, the state after it and its `Samples`."""
+    of a first call): the last round's relative variance per evaluation, whether it saw
+    only zeros, the state after it and its `Samples`."""
     parts, state, samples = run_adaptation(
         VegasPlus(), key, Integrand(f, batched), grid, rounds, round_size, keep_samples=True,
         active=active,
     )
-    v_first, v_last = (
-        _relative_variance(parts.mean[i], parts.variance[i]) * round_size for i in (0, active - 1)
-    )
-    return v_first, v_last, jnp.all(parts.mean[active - 1] == 0), state, samples
+    last = active - 1
+    v_last = _relative_variance(parts.mean[last], parts.variance[last]) * round_size
+    # The scatter of the last SCATTER_ROUNDS rounds' means (the spread `method="adaptive"`
+    # reports its error from), where the last round's own variance is far above it.
+    index = jnp.arange(rounds)
+    recent = (index > last - SCATTER_ROUNDS) & (index <= last)
+    shape = (rounds,) + (1,) * (parts.mean.ndim - 1)
+    weight = jnp.reshape(recent, shape).astype(parts.mean.dtype) / SCATTER_ROUNDS
+    centre = jnp.sum(weight * parts.mean, axis=0)
+    spread = jnp.sum(weight * (parts.mean - centre) ** 2, axis=0) * SCATTER_ROUNDS / (SCATTER_ROUNDS - 1)
+    v_scatter = _relative_variance(centre, spread) * round_size
+    heavy = (active >= SCATTER_ROUNDS) & (v_last > SCATTER_TRUST * v_scatter)
+    hedged = jnp.sqrt(v_last * v_scatter)  # the scatter of 5 rounds is itself uncertain
+    return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0), state, samples
 
 
 def seeded_mixture(grid: Grid, samples) -> Mixture:
@@ -260,14 +294,6 @@ def _mixture_pilot(key, grid, samples, *, f, size, batched):
     return variance, jnp.all(mean == 0), mixture
 
 
-def _projected(v_first, v_last, rounds_done: int, rounds: int):
-    """The grid's variance per evaluation after `rounds`, if it kept falling at the rate
-    its first `rounds_done` rounds showed (that fall taken as at most 1000-fold, never a rise)."""
-    fall = jnp.where(v_first > 0, v_last / jnp.where(v_first > 0, v_first, 1.0), 1.0)
-    fall = jnp.clip(jnp.where(jnp.isfinite(fall), fall, 1.0), 1e-3, 1.0)
-    return v_last * fall ** ((rounds - rounds_done) / max(rounds_done - 1, 1))
-
-
 def _choose(qmc: _QMCPilot, variance, blind):
     """`(variance, cost, choice)` of the candidates, given QMC's pilot and every
     candidate's variance per evaluation and blindness (QMC's first)."""
@@ -288,16 +314,14 @@ def _first_two(choice):
 # The decisions between the pilot's stages, each one compiled program (run eagerly, their
 # dozens of small operations were ~1.5 s of compilation in a first call).
 @eqx.filter_jit
-def _screen(qmc: _QMCPilot, v_first, v_grid, grid_blind, screen: int, rounds: int):
-    """QMC against the grid after `screen` of its `rounds` rounds: `(the choice, the
-    choice restricted to the two, whether the young grid is dropped)`."""
+def _screen(qmc: _QMCPilot, v_grid, grid_blind):
+    """QMC against the young grid: `(the choice, the choice restricted to the two, whether
+    the young grid is dropped)`."""
     # The mixture is not seeded from a young grid: its variance counts as unknown here.
     screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
                        jnp.stack([qmc.blind, grid_blind, True]))
-    # Dropped only if, still falling at the rate its first rounds showed, the grid would
-    # end SCREEN_MARGIN times costlier than QMC (a young grid on a peak is 100x off).
-    prospect = _projected(v_first, v_grid, screen, rounds) * RELATIVE_COST["adaptive"]
-    decided = (prospect > SCREEN_MARGIN * screened[1][0]) & ~qmc.blind
+    # Dropped only if SCREEN_MARGIN times costlier than QMC as it stands.
+    decided = (screened[1][1] > SCREEN_MARGIN * screened[1][0]) & ~qmc.blind
     return screened, _first_two(screened), decided
 
 
@@ -329,7 +353,7 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
     grid's variance says little of the trained one's (measured after 3 and 10
     rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a 5-D
     posterior), so the choice is made on the trained grid unless the young one,
-    projected at the rate it was falling, is `SCREEN_MARGIN` times costlier than QMC.
+    as it stands, is `SCREEN_MARGIN` times costlier than QMC.
     The mixture is seeded from the trained grid and measured on at most
     `MIXTURE_PILOT_POINTS` points, unless QMC or the grid already costs less than
     a mixture at `MIXTURE_FLOOR` would, in one dimension (a grid there is any
@@ -363,16 +387,16 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
         return pilot, None, None, screened_rest
     grid = Grid(lo, hi, bins=grid_bins(round_size))
     settings = dict(f=f, round_size=round_size, batched=batched)
-    v_first, v_grid, grid_blind, state, samples = _grid_rounds(
+    v_grid, grid_blind, state, samples = _grid_rounds(
         key_screen, grid, jnp.int32(screen), rounds=rounds, **settings
     )
-    screened, screened_two, decided = _screen(qmc, v_first, v_grid, grid_blind, screen, rounds)
+    screened, screened_two, decided = _screen(qmc, v_grid, grid_blind)
     if is_concrete(decided) and bool(decided):
         variance, cost, choice = screened_two
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
         return pilot, state, None, screened_rest
     if rounds > screen:
-        _, v_grid, grid_blind, state, samples = _grid_rounds(
+        v_grid, grid_blind, state, samples = _grid_rounds(
             key_train, state.grid, jnp.int32(rounds - screen), rounds=rounds, **settings
         )
     # No mixture measured so far has gone below MIXTURE_FLOOR: when QMC or the grid already
