@@ -32,11 +32,12 @@ The candidates:
   credited with plain MC's variance, never a clear win.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
-  $\sigma^2_m$ of its last round, or the scatter of its last `SCATTER_ROUNDS`
-  rounds' means (their geometric mean) where that round's own variance is
-  `SCATTER_TRUST` times above it (a round's variance comes from pairs in hypercubes, which a peak
-  the grid has not yet resolved inflates: 100-1000x what the grid then
-  realised on a 16-D camel, a 5-D posterior and a corner singularity). A young grid's variance says little of the
+  $\sigma^2_m$ of its last round, hedged (a geometric mean) with the scatter of
+  its last `SCATTER_ROUNDS` rounds' means where that round's own variance is
+  `SCATTER_TRUST` times above it: a round's variance comes from pairs of points
+  in hypercubes, which a peak the grid has not yet resolved inflates (100-1000x
+  what the grid then realised on a 16-D camel, a 5-D posterior and a corner
+  singularity). A young grid's variance says little of the
   trained one's (measured after 3 and 10 rounds: from 10x worse, on a 16-D
   discontinuity, to 1000x better, on a 5-D posterior), so the grid is dropped
   after `SCREEN_ROUNDS` rounds only when, as it stands, it is `SCREEN_MARGIN`
