@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import math
 import statistics
 import sys
 import time
@@ -84,17 +83,18 @@ def time_call(fn: Callable[[], Any], *, repeats: int = 5) -> Timing:
     return Timing(tuple(seconds), output)
 
 
-def covered(errors, stderrs, dofs, sigmas: float) -> np.ndarray:
-    """Whether each |error| is within the interval of nominal level P(|Z| <= `sigmas`)
-    (`sigmas` standard errors for a normal error bar, Student's t quantile of that level for
-    one with `dofs` degrees of freedom: `Estimate.interval`). A NaN error bar covers nothing."""
-    import jaxmc
+def normal_equivalent(absz, dofs) -> np.ndarray:
+    """|z| = |error| / stderr of error bars with `dofs` degrees of freedom, as the standard
+    normal |z| with the same two-sided tail (Student's t; unchanged for infinite `dofs`), so
+    that |z| <= 2 is coverage by `Estimate.interval` at the level of 2 sigma. NaN covers nothing."""
+    from scipy import stats
 
-    level = math.erf(sigmas / math.sqrt(2))
-    dofs = np.asarray(dofs, dtype=float)
-    half_widths = np.asarray(jaxmc.stats.student_t_quantile(0.5 + level / 2, dofs), dtype=float)
+    absz = np.where(np.isnan(absz), np.inf, np.asarray(absz, float))
+    dofs = np.asarray(dofs, float)
+    finite = np.isfinite(dofs) & (dofs > 0)
     with np.errstate(invalid="ignore"):
-        return np.abs(np.asarray(errors, float)) <= half_widths * np.asarray(stderrs, float)
+        tail = stats.t.sf(absz, np.where(finite, dofs, 1.0))
+    return np.where(finite & np.isfinite(absz), stats.norm.isf(tail), absz)
 
 
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:

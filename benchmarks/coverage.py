@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import problems
-from ._harness import Context, Result, markdown_table, pyplot
+from ._harness import Context, Result, markdown_table, normal_equivalent, pyplot
 from .problems import Problem
 
 
@@ -204,26 +204,13 @@ def _normal_quantile(level: float) -> float:
     return statistics.NormalDist().inv_cdf(0.5 + level / 2)
 
 
-def _normal_equivalent(absz: np.ndarray, dof: np.ndarray) -> np.ndarray:
-    """|z| of a t variable with `dof` degrees of freedom as the standard normal |z| with the
-    same tail probability (unchanged for infinite `dof`)."""
-    from scipy import stats
-
-    finite = np.isfinite(dof) & (dof > 0)
-    with np.errstate(invalid="ignore"):
-        tail = stats.t.sf(absz, np.where(finite, dof, 1.0))
-    return np.where(finite & np.isfinite(absz), stats.norm.isf(tail), absz)
-
-
 def summarise(method: str, case: Case, runs: dict[str, np.ndarray]) -> dict:
     """Coverage at 1 and 2 sigma and at `LEVELS`, mean |z|, the flagged share and the verdict."""
     with np.errstate(divide="ignore", invalid="ignore"):  # a zero error bar: |z| = inf
         z = (runs["mean"] - case.problem.exact) / runs["stderr"]
-    absz = np.where(np.isnan(z), np.inf, np.abs(z))  # a NaN error bar covers nothing
-    # An error bar with few degrees of freedom (replicas) is read with Student's t: |z| is
-    # mapped to the normal |z| of the same two-sided tail, so every level below is the
-    # coverage of `Estimate.interval` at that level.
-    absz = _normal_equivalent(absz, runs["dof"])
+    # An error bar with few degrees of freedom (replicas) is read with Student's t: every
+    # level below is the coverage of `Estimate.interval` at that level.
+    absz = normal_equivalent(np.abs(z), runs["dof"])
     cov1, cov2 = float(np.mean(absz <= 1)), float(np.mean(absz <= 2))
     flagged = float(np.mean(runs["flagged"]))
     in_band = PASS_BAND[0] <= cov2 <= PASS_BAND[1]

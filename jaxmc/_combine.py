@@ -160,7 +160,8 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     unknown_mean = jnp.where(all_empty, 0.0, jnp.nan)
     mean = jnp.where(informative, jnp.sum(w * parts.mean, axis=0) / safe_wsum, unknown_mean)
     unknown_var = jnp.where(all_empty, 0.0, jnp.inf)
-    pooled = jnp.sum(w**2 * safe_var, axis=0) / safe_wsum**2  # 1 / sum(w) for w = 1/V
+    term = w**2 * safe_var  # each part's share of the pooled variance, times (sum w)^2
+    pooled = jnp.sum(term, axis=0) / safe_wsum**2  # 1 / sum(w) for w = 1/V
     variance = jnp.where(any_exact, 0.0, jnp.where(informative, pooled, unknown_var))
     chi2_terms = jnp.where(measured, (parts.mean - mean) ** 2 / jnp.where(measured, var, 1.0), 0.0)
     chi2 = jnp.sum(chi2_terms)
@@ -172,7 +173,6 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     # Welch-Satterthwaite: the pooled variance sum_i a_i V_i (a_i = w_i^2 / (sum w)^2) has
     # (sum a_i V_i)^2 / sum_i (a_i V_i)^2 / nu_i degrees of freedom (infinite for normal parts).
     part_dof = _per_part(parts.dof, var)
-    term = jnp.where(measured, w**2 * safe_var, 0.0)
     spread = jnp.sum(jnp.where(jnp.isfinite(part_dof) & (term > 0),
                                term**2 / jnp.where(part_dof > 0, part_dof, 1.0), 0.0), axis=0)
     total = jnp.sum(term, axis=0)

@@ -4,7 +4,15 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from jaxmc.stats import Combined, Estimate, combine, merge, merge_all, moments
+from jaxmc.stats import (
+    Combined,
+    Estimate,
+    combine,
+    merge,
+    merge_all,
+    moments,
+    student_t_quantile,
+)
 
 
 def _estimate(mean, variance, n=100):
@@ -33,10 +41,16 @@ def test_interval_is_student_t_with_the_estimates_degrees_of_freedom():
     assert np.isposinf(normal.dof) and "dof" not in repr(normal)
 
 
+def test_student_t_quantile_matches_scipy():
+    for dof in (1, 2, 3, 7, 31, 200):
+        for p in (0.6, 0.9, 0.975, 0.995, 0.05):
+            np.testing.assert_allclose(
+                student_t_quantile(p, dof), scipy.stats.t.ppf(p, dof), rtol=1e-9, atol=1e-12
+            )
+
+
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_student_t_quantile_is_symmetric_and_normal_at_infinite_dof(dtype):
-    from jaxmc.stats import student_t_quantile
-
     p = jnp.asarray([0.6, 0.977, 0.9995], dtype)
     for dof in (1.0, 4.0, 30.0):
         q = student_t_quantile(p, jnp.asarray(dof, dtype))

@@ -106,8 +106,8 @@ def average_rounds(parts: Estimate, done) -> Estimate:
     that, each round being unbiased given its grid, the average $\bar I = \sum_i
     p_i I_i$ is unbiased whatever the rounds showed. The variance comes from
     their scatter, $V = \frac{k_e}{k_e - 1} \sum_i p_i^2 (I_i - \bar I)^2$ with
-    $k_e = 1/\sum_i p_i^2$ rounds in effect (its degrees of freedom $k_e - 1$), not
-    from the rounds' own error bars
+    $k_e = 1/\sum_i p_i^2$ rounds in effect (with $k_e - 1$ degrees of freedom),
+    not from the rounds' own error bars
     (i.i.d. bounds when $f/p$ has a power-law tail). Weights from the rounds'
     variances, as vegas uses, drift low when small rounds that starved a region
     report small variances: on the coverage suite's thin shell (rounds of 256

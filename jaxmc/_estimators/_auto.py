@@ -322,7 +322,8 @@ def _screen(qmc: _QMCPilot, v_grid, grid_blind):
     screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
                        jnp.stack([qmc.blind, grid_blind, True]))
     # Dropped only if SCREEN_MARGIN times costlier than QMC as it stands.
-    decided = (screened[1][1] > SCREEN_MARGIN * screened[1][0]) & ~qmc.blind
+    qmc_cost, grid_cost, _ = screened[1]
+    decided = (grid_cost > SCREEN_MARGIN * qmc_cost) & ~qmc.blind
     return screened, _first_two(screened), decided
 
 
