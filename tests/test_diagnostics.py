@@ -57,14 +57,16 @@ def test_tails_merge_exactly():
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-def test_tail_keeps_the_largest_values_exactly(dtype):
+@pytest.mark.parametrize("n", [5000, 2**14 + 3])
+def test_tail_keeps_the_largest_values_exactly(dtype, n):
     # float64 values are ranked in float32 (a full sort otherwise): the kept values must
     # still be the largest, in full precision, decreasing; with values spanning 1e300,
     # values that differ only beyond float32's precision, zeros and fewer values than kept.
+    # A stream's block (2^14 and more) is searched group by group first: the same values.
     rng = np.random.default_rng(3)
-    wide = rng.pareto(0.05, 5000) if dtype == jnp.float64 else rng.pareto(0.5, 5000)
-    close = 1.0 + rng.integers(0, 50, 5000) * 1e-12 if dtype == jnp.float64 else rng.random(5000)
-    sparse = np.where(rng.random(5000) < 0.01, rng.random(5000), 0.0)
+    wide = rng.pareto(0.05, n) if dtype == jnp.float64 else rng.pareto(0.5, n)
+    close = 1.0 + rng.integers(0, 50, n) * 1e-12 if dtype == jnp.float64 else rng.random(n)
+    sparse = np.where(rng.random(n) < 0.01, rng.random(n), 0.0)
     for c in (wide, close, -wide, sparse, rng.random(40)):
         top = np.asarray(tail_of(jnp.asarray(c, dtype)).top)
         expected = np.sort(np.abs(np.asarray(c, dtype)))[::-1][: TAIL + 1]

@@ -241,6 +241,23 @@ def test_legacy_keys(key):
     assert legacy.shape == (64, 5) and float(legacy.max()) < 1.0
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_scrambled_sobol_points_sit_at_the_centres_of_their_cells(key, dtype):
+    # A random digital shift makes each 32-bit word uniform: a point at its cell's left end
+    # would average f over the cells' left ends, biased by 2^-33 per axis. At the centres,
+    # word x and its mirror 2^32 - 1 - x land symmetrically about 1/2, so E[u] = 1/2.
+    from jaxmc._points._common import uint32_to_unit
+
+    words = jax.random.bits(key, (4096,), jnp.uint32)
+    u = uint32_to_unit(words, jnp.dtype(dtype), centred=True)
+    mirrored = uint32_to_unit(~words, jnp.dtype(dtype), centred=True)
+    np.testing.assert_array_equal(np.asarray(u, np.float64) + np.asarray(mirrored, np.float64), 1.0)
+    assert float(u.min()) > 0.0 and float(u.max()) < 1.0
+    x = np.asarray(points.sobol(2**10, 3, key=key, dtype=dtype), np.float64)
+    cells = 2.0**-32 if dtype == jnp.float64 else 2.0**-23
+    np.testing.assert_array_equal(np.mod(x, cells), cells / 2)
+
+
 def test_large_scrambled_sets_are_uniform(key):
     # Within one randomised set the empirical distribution is (much better than) uniform.
     for x in (points.sobol(4096, 8, key=key), points.halton(4096, 8, key=key)):

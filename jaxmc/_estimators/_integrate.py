@@ -120,12 +120,12 @@ def integrate(
           $R$ independently scrambled Sobol' sequences, each walked block by
           block as one growing net; the mean is their average and the variance
           $s^2/R$ from their spread. With `n`, each replica gets the largest
-          power of two of points that 5 replicas fit in and the rest of the
-          budget buys more replicas ($R$ = 5…9); with a tolerance $R = 8$ and
+          power of two of points that 3 replicas fit in and the rest of the
+          budget buys more replicas ($R$ = 3…5); with a tolerance $R = 8$ and
           the stopping rule is checked when each replica holds a power of two
           of points. Few replicas make the error bar itself uncertain: it has
           `est.dof` $= R - 1$ degrees of freedom and `est.interval` is
-          Student's $t$ interval (mean ± 2 stderr alone covers 88% at $R = 5$,
+          Student's $t$ interval (mean ± 2 stderr alone covers 82% at $R = 3$,
           91% at $R = 8$). On smooth integrands the error falls like $n^{-1}$
           or faster (plain Monte Carlo: $n^{-1/2}$); it is never much worse
           than plain MC (Owen's scrambled nets), in any dimension.

@@ -69,11 +69,13 @@ QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence with a toleranc
 # n^-1.5 the variance of the mean grows like replicas^2 for a given budget, so fewer, larger
 # nets are more accurate; the error bar then has replicas - 1 degrees of freedom
 # (`Estimate.dof`), and `Estimate.interval` is Student's t: mean +- 2 stderr alone covers
-# P(|t_4| <= 2) = 0.88 with 5 replicas (measured 0.88 on a 4-D discontinuity and an 8-D
-# half-space), the t interval of the same level 0.954. Five give a budget of 1e5 (less
-# auto's pilot) nets of 2^14 instead of the 2^13 of seven: 2.5-8x less variance on smooth
-# Genz integrands; 1e6 has nets of 2^17 either way.
-QMC_MIN_REPLICAS = 5
+# P(|t_2| <= 2) = 0.82 with 3 replicas, the t interval of the same level 0.954. Three give
+# a budget of 1e6 (less auto's pilot) 3 nets of 2^18 instead of the 7 of 2^17 that five
+# gave: measured (40 keys), 1.2-1.5x lower error on 8-D discontinuities, 1.6-3.5x on smooth
+# Genz integrands, a 2-D annulus and a 3-D ball, equal on an 8-D kink and a 4-D resonance;
+# a budget of 1e5 has five nets of 2^14 either way. (Nets of 3 * 2^16 points, for four
+# replicas, are no remedy: the last 2^16 points are an unpaired net, 8x the variance.)
+QMC_MIN_REPLICAS = 3
 
 
 class Plan(eqx.Module):
@@ -109,7 +111,7 @@ def plan(
 
     Randomised QMC with a fixed budget gives each replica the largest power of
     two of points that `QMC_MIN_REPLICAS` replicas fit in (whole nets, where its
-    error is smallest) and spends what is left on more replicas (5 to 9);
+    error is smallest) and spends what is left on more replicas (3 to 5);
     with a tolerance there are `QMC_REPLICAS` and the nets grow.
     """
     strata: tuple[int, ...] = ()
@@ -164,7 +166,7 @@ def plan(
 def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
     """Block `position` (`2**log2_size` points on $[0,1)^d$) of the Sobol' sequence
     scrambled by `scramble = sobol_scramble(key, d)`: one QMC replica's next net block."""
-    return uint32_to_unit(sobol_block(*scramble, position, log2_size), dtype)
+    return uint32_to_unit(sobol_block(*scramble, position, log2_size), dtype, centred=True)
 
 
 def _vegas_plus_block(key, frozen, n, f, batched):

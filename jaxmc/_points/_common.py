@@ -47,16 +47,29 @@ def x64_enabled() -> bool:
     return bool(jax.config.read("jax_enable_x64"))
 
 
-def uint32_to_unit(x: jax.Array, dtype: np.dtype) -> jax.Array:
-    """Map 32-bit integers $x$ to $x / 2^{32}$ in `dtype`, in the open interval $(0, 1)$.
+def uint32_to_unit(x: jax.Array, dtype: np.dtype, centred: bool = False) -> jax.Array:
+    r"""Map 32-bit integers $x$ to $x / 2^{32}$ in `dtype`, in the open interval $(0, 1)$.
 
     In float64 this is exact; in float32 (24-bit mantissa) the integer is
     truncated to its top 24 bits first, so the result never rounds up to 1.
     The one value that would be 0 ($x < 2^{32-p}$) becomes $2^{-p}$ (`open_unit`),
     still inside every elementary interval of width $2^{1-p}$ or more that held it.
+
+    `centred` maps to the centre of the cell instead, $(x + 1/2) / 2^{32}$
+    (float32: $(\lfloor x / 2^9 \rfloor + 1/2) / 2^{23}$, exact in 24 bits), for
+    randomised points: a random digital shift makes $x$ uniform on the $2^{32}$
+    cells, so $x / 2^{32}$ averages $f$ at the cells' left ends, a bias of
+    $2^{-33} \sum_i \int (f|_{u_i=0} - f|_{u_i=1})$ (measured: $4 \cdot 10^{-10}$
+    relative on a 2-D Genz corner peak, 30x the error of three nets of $2^{18}$
+    points, whose spread does not see it); the centre's bias is $O(2^{-64})$.
     """
     if jnp.finfo(dtype).nmant >= 32:
-        return open_unit(x.astype(dtype) * dtype.type(2.0**-32))
+        offset = 0.5 if centred else 0.0
+        return open_unit((x.astype(dtype) + dtype.type(offset)) * dtype.type(2.0**-32))
+    if centred:
+        bits = jnp.finfo(dtype).nmant
+        kept = (x >> np.uint32(32 - bits)).astype(dtype)
+        return (kept + dtype.type(0.5)) * dtype.type(2.0**-bits)
     shift = 32 - (jnp.finfo(dtype).nmant + 1)
     return open_unit((x >> np.uint32(shift)).astype(dtype) * dtype.type(2.0 ** -(32 - shift)))
 

@@ -185,7 +185,7 @@ def _sobol_plain(v, n, skip, dtype):
 @functools.partial(jax.jit, static_argnames=("n", "skip", "dtype"))
 def _sobol_scrambled(key, v, n, skip, dtype):
     v, shift = _lms_shift(key, v)
-    return uint32_to_unit(_sobol_uint32(v, shift, n, skip), dtype)
+    return uint32_to_unit(_sobol_uint32(v, shift, n, skip), dtype, centred=True)
 
 
 def sobol(n: int, d: int, *, key: jax.Array | None = None, skip: int = 0, dtype=None) -> jax.Array:
