@@ -71,9 +71,10 @@ QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence with a toleranc
 # (`Estimate.dof`), and `Estimate.interval` is Student's t: mean +- 2 stderr alone covers
 # P(|t_2| <= 2) = 0.82 with 3 replicas, the t interval of the same level 0.954. Three give
 # a budget of 1e6 (less auto's pilot) 3 nets of 2^18 instead of the 7 of 2^17 that five
-# gave: measured (40 keys), 1.2-1.5x lower error on 8-D discontinuities, 1.6-3.5x on smooth
-# Genz integrands, a 2-D annulus and a 3-D ball, equal on an 8-D kink and a 4-D resonance;
-# a budget of 1e5 has five nets of 2^14 either way. (Nets of 3 * 2^16 points, for four
+# gave: measured (auto at 1e6), 1.6-3.6x lower RMS error on smooth Genz integrands, a 2-D
+# annulus and a 3-D ball (10 keys), 1.2x on an 8-D discontinuity and an 8-D half-space,
+# equal on an 8-D kink and a 4-D resonance (40 keys); a budget of 1e5 has five nets of
+# 2^14 either way. (Nets of 3 * 2^16 points, for four
 # replicas, are no remedy: the last 2^16 points are an unpaired net, 8x the variance.)
 QMC_MIN_REPLICAS = 3
 
