@@ -51,6 +51,10 @@ from ._stream import plan, stream_on_mesh
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)
+# ...for the stream from auto's mixture, whose density holds (points, components, d) arrays:
+# in smaller steps they stay in cache (measured on a CPU at 1e6: 25-45% less time on a 4-D
+# and an 8-D Gaussian peak and a 5-D posterior; QMC streams were 20-60% slower so).
+MIXTURE_CHUNK = 1 << 16
 MAX_N = 1 << 30  # default budget when only a tolerance is given
 
 
@@ -144,9 +148,10 @@ def integrate(
         - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
           jittered grid; variance from the spread of block means).
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
-    - `chunk`: samples evaluated per loop step (default $2^{18}$); bounds the
-      memory and, with several devices, is split among them. Results do not
-      depend on it beyond float rounding.
+    - `chunk`: samples evaluated per loop step (default $2^{18}$, $2^{16}$ for
+      `"auto"`'s mixture); bounds the memory and, with several devices, is
+      split among them (one block per device at least). Results do not depend
+      on it beyond float rounding.
     - `nonfinite`: `"raise"` (default) raises `FloatingPointError` when some
       $f/p$ was not finite; `"drop"` lets those samples contribute zero (they
       are still counted in `n_nonfinite`).
@@ -209,6 +214,7 @@ def integrate(
             f"the evaluation budget `{'n' if n is not None else 'max_n'}` must be at most "
             f"2**31 - 1 (counts are int32), got {budget}."
         )
+    mixture_chunk = check_count(chunk if chunk is not None else MIXTURE_CHUNK, "chunk")
     chunk = check_count(chunk if chunk is not None else CHUNK, "chunk")
     mesh = _blocks_mesh(mesh)
     tolerant = rtol is not None or atol is not None
@@ -230,7 +236,8 @@ def integrate(
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
             # i.i.d. from the mixture the pilot seeded from the grid.
-            lambda: run.block_method("importance", key, rest, spent, frozen=mixture),
+            lambda: run.block_method("importance", key, rest, spent, frozen=mixture,
+                                     chunk=mixture_chunk),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -291,8 +298,8 @@ class _Run:
                 batched=self.batched,
             )
 
-    def block_method(self, method, key, budget, done=0, frozen=None):
-        run_plan = plan(method, budget, self.chunk, self.mesh.size, self.d,
+    def block_method(self, method, key, budget, done=0, frozen=None, chunk=None):
+        run_plan = plan(method, budget, chunk or self.chunk, self.mesh.size, self.d,
                         tolerant=self.tolerant)
         return self._stream(key, frozen, run_plan, done)
 

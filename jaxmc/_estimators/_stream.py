@@ -153,7 +153,9 @@ def plan(
             block = per_axis**d
         blocks = budget // block
         budget = blocks * block
-    per_step = min(max(1, -(-chunk // block)), blocks)  # never more blocks than the budget
+    # At least a block per device (a small chunk must not idle devices), never more blocks
+    # than the budget.
+    per_step = min(max(1, -(-chunk // block), devices), blocks)
     if method == "qmc":
         # Whole rounds (one block of every replica), a power of two of them per step, so
         # each replica holds a power of two of points after 1, 2, 4, ... steps.
