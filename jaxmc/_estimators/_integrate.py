@@ -214,8 +214,9 @@ def integrate(
             f"the evaluation budget `{'n' if n is not None else 'max_n'}` must be at most "
             f"2**31 - 1 (counts are int32), got {budget}."
         )
-    mixture_chunk = check_count(chunk if chunk is not None else MIXTURE_CHUNK, "chunk")
-    chunk = check_count(chunk if chunk is not None else CHUNK, "chunk")
+    chunk = check_count(chunk, "chunk") if chunk is not None else None
+    mixture_chunk = chunk or MIXTURE_CHUNK
+    chunk = chunk or CHUNK
     mesh = _blocks_mesh(mesh)
     tolerant = rtol is not None or atol is not None
     run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,

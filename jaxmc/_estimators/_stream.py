@@ -74,8 +74,8 @@ QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence with a toleranc
 # gave: measured (auto at 1e6), 1.6-3.6x lower RMS error on smooth Genz integrands, a 2-D
 # annulus and a 3-D ball (10 keys), 1.2x on an 8-D discontinuity and an 8-D half-space,
 # equal on an 8-D kink and a 4-D resonance (40 keys); a budget of 1e5 has five nets of
-# 2^14 either way. (Nets of 3 * 2^16 points, for four
-# replicas, are no remedy: the last 2^16 points are an unpaired net, 8x the variance.)
+# 2^14 either way. (Nets of 3 * 2^16 points, for four replicas, are no remedy: the last
+# 2^16 points are an unpaired net, 8x the variance.)
 QMC_MIN_REPLICAS = 3
 
 

@@ -64,13 +64,12 @@ def uint32_to_unit(x: jax.Array, dtype: np.dtype, centred: bool = False) -> jax.
     their spread, often $10^{-11}$ to $10^{-10}$ with nets of $2^{18}$ points, does
     not see, so the $t$ interval covered 0.6); the centre's is $O(2^{-64})$.
     """
-    if jnp.finfo(dtype).nmant >= 32:
-        offset = 0.5 if centred else 0.0
-        return open_unit((x.astype(dtype) + dtype.type(offset)) * dtype.type(2.0**-32))
-    if centred:
-        bits = jnp.finfo(dtype).nmant
+    if centred:  # strictly inside (0, 1) as it stands
+        bits = min(32, jnp.finfo(dtype).nmant)
         kept = (x >> np.uint32(32 - bits)).astype(dtype)
         return (kept + dtype.type(0.5)) * dtype.type(2.0**-bits)
+    if jnp.finfo(dtype).nmant >= 32:
+        return open_unit(x.astype(dtype) * dtype.type(2.0**-32))
     shift = 32 - (jnp.finfo(dtype).nmant + 1)
     return open_unit((x >> np.uint32(shift)).astype(dtype) * dtype.type(2.0 ** -(32 - shift)))
 
