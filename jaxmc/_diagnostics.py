@@ -368,14 +368,16 @@ def _flags(est: Any) -> dict[str, jax.Array]:
 
 def reliability_reasons(est: Any) -> list[str]:
     """The reasons `unreliable(est)` is true, in words (needs concrete values)."""
-    return [reason for reason, flag in _any_flags(est) if bool(flag)]
+    reasons, flags = _any_flags(est)
+    return [reason for reason, flag in zip(reasons, np.asarray(flags)) if flag]
 
 
 @eqx.filter_jit
-def _any_flags(est: Any) -> list[tuple[str, jax.Array]]:
+def _any_flags(est: Any) -> tuple[tuple[str, ...], jax.Array]:
     # One compiled program: run eagerly, the flags' dozen small operations each compiled
-    # on a first call (~0.3 s).
-    return [(reason, jnp.any(flag)) for reason, flag in _flags(est).items()]
+    # on a first call (~0.3 s); one array, read at once.
+    flags = _flags(est)
+    return tuple(flags), jnp.stack([jnp.any(flag) for flag in flags.values()])
 
 
 def warn_if_unreliable(est: Any, where: str, stacklevel: int = 3) -> None:

@@ -188,7 +188,8 @@ class _QMCPilot(eqx.Module):
 
 @eqx.filter_jit
 def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
-    """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured."""
+    """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured: `(_QMCPilot,
+    the `Pilot` of QMC alone)`."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
     volume = jnp.prod(hi - lo)
 
@@ -229,7 +230,11 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
     heavy = jnp.any(power_law_tail(tail_of(flat)))
     projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
     blind = jnp.all(mean == 0) | ~measured
-    return _QMCPilot(projected, (plain >= QMC_CLEAR_WIN * full) & measured & ~heavy, blind)
+    qmc = _QMCPilot(projected, (plain >= QMC_CLEAR_WIN * full) & measured & ~heavy, blind)
+    # The record of a clear win, made here: eagerly, its three small arrays cost ~0.1 ms.
+    alone = Pilot(("qmc",), projected[None], projected[None], jnp.asarray(0, jnp.int32),
+                  (per_replica * QMC_REPLICAS,))
+    return qmc, alone
 
 
 @eqx.filter_jit
@@ -346,9 +351,18 @@ def _with_mixture(qmc: _QMCPilot, v_grid, grid_blind, v_mixture, mixture_blind, 
     return tuple(jnp.where(decided, a, b) for a, b in zip(screened, trained))
 
 
-def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=False):
-    """Run the candidates' pilots; returns `(Pilot, trained VEGAS+ state or None,
-    seeded mixture or None, evaluations left for the winner's stream)`.
+@jax.jit
+def split_keys(key):
+    """`(the stream's key, the pilot's key)` from `integrate`'s key, the pilot's split in
+    four, in one dispatch (eagerly, the splits and their unpacking cost ~0.1 ms)."""
+    pilot_key, key = jax.random.split(key)
+    return key, tuple(jax.random.split(pilot_key, 4))
+
+
+def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=False):
+    """Run the candidates' pilots (`keys`: the pilot's four, `split_keys`); returns
+    `(Pilot, trained VEGAS+ state or None, seeded mixture or None, evaluations left for
+    the winner's stream)`.
 
     The grid trains in two stages, `SCREEN_ROUNDS` rounds and then the rest of the
     `rounds` rounds of `round_size` that `method="adaptive"` trains for: a young
@@ -375,18 +389,17 @@ def run_pilot(key, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fals
     """
     per_replica = pilot_qmc_points(budget)
     qmc_n = per_replica * QMC_REPLICAS
-    key_qmc, key_screen, key_train, key_mixture = jax.random.split(key, 4)
+    key_qmc, key_screen, key_train, key_mixture = keys
     screen = min(SCREEN_ROUNDS, rounds)
     screened_rest = budget - qmc_n - screen * round_size  # after a clear win or a screen
     # In one dimension a grid is any piecewise-constant density: a mixture adds nothing.
     mixture_n = 0 if tolerant or lo.size == 1 else min(round_size, MIXTURE_PILOT_POINTS)
     trained_rest = budget - qmc_n - rounds * round_size - mixture_n
     growth = min(final_net(screened_rest) / per_replica, MAX_NET_GROWTH)
-    qmc = _qmc_pilot(key_qmc, lo, hi, f=f, per_replica=per_replica, growth=growth, batched=batched)
+    qmc, alone = _qmc_pilot(key_qmc, lo, hi, f=f, per_replica=per_replica, growth=growth,
+                            batched=batched)
     if is_concrete(qmc.clear_win) and bool(qmc.clear_win):
-        pilot = Pilot(("qmc",), qmc.variance[None], qmc.variance[None],
-                      jnp.asarray(0, jnp.int32), (qmc_n,))
-        return pilot, None, None, screened_rest
+        return alone, None, None, screened_rest
     grid = Grid(lo, hi, bins=grid_bins(round_size))
     settings = dict(f=f, round_size=round_size, batched=batched)
     v_grid, grid_blind, state, samples = _grid_rounds(

@@ -45,7 +45,7 @@ from ._adaptive import (
     train_vegas_plus,
     training_rounds,
 )
-from ._auto import Pilot, run_pilot
+from ._auto import Pilot, run_pilot, split_keys
 from ._stream import plan, stream_on_mesh
 
 
@@ -219,17 +219,18 @@ def integrate(
     chunk = chunk or CHUNK
     mesh = _blocks_mesh(mesh)
     tolerant = rtol is not None or atol is not None
+    # (An absent tolerance is a NumPy zero: an eager jnp constant costs ~30 us a call.)
     run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,
-               jnp.asarray(rtol if rtol is not None else 0.0, lo.dtype),
-               jnp.asarray(atol if atol is not None else 0.0, lo.dtype))
+               *(np.zeros((), lo.dtype) if tol is None else jnp.asarray(tol, lo.dtype)
+                 for tol in (rtol, atol)))
     pilot = None
     if method == "auto" and budget < _AUTO_MIN_BUDGET:
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
-        pilot_key, key = jax.random.split(key)
+        key, pilot_keys = split_keys(key)
         block = adaptive_block(budget)
         rounds = training_rounds(budget, block)
-        pilot, state, mixture, rest = run_pilot(pilot_key, f, lo, hi, budget, batched, rounds,
+        pilot, state, mixture, rest = run_pilot(pilot_keys, f, lo, hi, budget, batched, rounds,
                                                 block, tolerant)
         spent = sum(pilot.evaluations)
         branches = (
@@ -245,7 +246,6 @@ def integrate(
             est = branches[int(pilot.choice)]()
         else:  # chosen under jit: both streams are compiled, one runs
             est = jax.lax.switch(pilot.choice, branches)
-        est = dataclasses.replace(est, n=est.n + spent)
     elif method == "adaptive":
         est = run.adaptive(key, budget, Grid(lo, hi, bins=grid_bins(adaptive_block(budget))))
     else:
@@ -254,9 +254,10 @@ def integrate(
     if tolerant:
         tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
         converged = jnp.all(est.stderr <= tol)
-    est = IntegrationEstimate(
-        **estimate_fields(est), method=method, pilot=pilot, converged=converged
-    )
+    fields = estimate_fields(est)
+    if pilot is not None:  # the pilot's evaluations count in n
+        fields["n"] = est.n + sum(pilot.evaluations)
+    est = IntegrationEstimate(**fields, method=method, pilot=pilot, converged=converged)
     if tolerant:
         est = _forward_mode_only(est)
     if nonfinite == "raise":
