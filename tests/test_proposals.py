@@ -23,6 +23,7 @@ LO2, HI2 = jnp.array([0.0, -1.0]), jnp.array([1.0, 2.0])
 # Jitted entry points: eager op-by-op dispatch of the samplers is what makes a test slow.
 sample = eqx.filter_jit(lambda q, key, n: q.sample(key, n))
 pdf = eqx.filter_jit(lambda q, x: q.pdf(x))
+pdf_log = eqx.filter_jit(lambda q, x: q.log_pdf(x))
 
 
 def _quad_2d(pdf, lo, hi, m=400):
@@ -120,6 +121,37 @@ def test_sampling_law_1d(key, name):
     stat = np.sum((counts - expected) ** 2 / expected)
     p_value = sps.chi2.sf(stat, bins - 1)
     assert p_value > 1e-3, (counts, expected.round(1))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("offset", [0.0, 1000.0])
+def test_gaussian_mixture_density_matches_scipy(dtype, offset):
+    """The mixture of truncated normals' log density against SciPy's, with narrow (1e-3)
+    and wide components, on a box far from the origin too (float64 sums its quadratic
+    forms as matrix products about the box's centre; float32 point by point)."""
+    as_dtype = lambda a: np.asarray(jnp.asarray(a, dtype), np.float64)  # the values it holds
+    lo, hi = as_dtype(np.array([0.0, -1.0]) + offset), as_dtype(np.array([1.0, 2.0]) + offset)
+    means = as_dtype(np.array([[0.4, 0.5], [0.9, 1.8], [0.2, -0.9]]) + offset)
+    log_scales = as_dtype(np.log([[1e-3, 2e-3], [0.05, 0.3], [0.4, 1.0]]))
+    logits = np.array([0.0, 1.0, -1.0])
+    g = GaussianMixture(jax.random.key(0), jnp.asarray(lo, dtype), jnp.asarray(hi, dtype), 3)
+    g = eqx.tree_at(lambda m: (m.means, m.log_scales, m.logits), g,
+                    tuple(jnp.asarray(a, dtype) for a in (means, log_scales, logits)))
+    scales = np.exp(log_scales)
+    rng = np.random.default_rng(0)
+    # Points near each component's mean (within a few scales) and across the box.
+    x = np.concatenate([means[k] + scales[k] * rng.normal(size=(50, 2)) for k in range(3)]
+                       + [lo + (hi - lo) * rng.uniform(size=(50, 2))])
+    x = as_dtype(np.clip(x, lo, hi))
+    a, b = (lo - means) / scales, (hi - means) / scales
+    parts = [np.sum(sps.truncnorm.logpdf(x, a[k], b[k], means[k], scales[k]), axis=-1)
+             for k in range(3)]
+    w = np.exp(logits) / np.sum(np.exp(logits))
+    expected = np.log(sum(wk * np.exp(pk) for wk, pk in zip(w, parts)))
+    got = np.asarray(pdf_log(g, jnp.asarray(x, dtype)), np.float64)
+    # float32: (x - mu) / sigma to ~1e-7 of |x| / sigma, squared (~2e-3 at |x| = 1000).
+    tol = {jnp.float64: 1e-10, jnp.float32: 1e-4 * (1 + offset / 50)}[dtype]
+    np.testing.assert_allclose(got, expected, rtol=tol, atol=tol)
 
 
 def test_truncated_far_tail():

@@ -202,13 +202,26 @@ class GaussianMixture(AbstractProposal):
         )
 
     def _component_log_pdf(self, x: jax.Array) -> jax.Array:
-        """`(m, d) -> (m, K)`: each truncated component's log density."""
+        r"""`(m, d) -> (m, K)`: each truncated component's log density,
+        $-\frac12 \sum_j z_{kj}^2 - \sum_j (\log\sigma_{kj} + \log Z_{kj}) - \frac d2 \log 2\pi$
+        with $z_{kj} = (x_j - \mu_{kj})/\sigma_{kj}$ and $Z_{kj}$ the mass of the box."""
         lo, hi = as_vectors(self.lo, self.hi)
         sigma = jnp.exp(self.log_scales)
-        z = (x[:, None, :] - self.means) / sigma
         log_z = log_ndtr_diff((lo - self.means) / sigma, (hi - self.means) / sigma)
-        log_phi = -0.5 * z**2 - 0.5 * jnp.log(2 * jnp.pi)
-        return jnp.sum(log_phi - self.log_scales - log_z, axis=-1)
+        const = -jnp.sum(self.log_scales + log_z, axis=-1) - 0.5 * x.shape[-1] * jnp.log(2 * jnp.pi)
+        if jnp.finfo(x.dtype).bits >= 64:
+            # sum_j z^2 = x^2 . w - 2 x . (w mu) + mu^2 . w with w = sigma^-2: matrix products
+            # instead of (m, K, d) arrays (2-3x less time for the mixture's stream on a CPU).
+            # About the box's centre, the cancellation costs ~1e-16 (width/sigma)^2: nothing
+            # in float64, too much in float32 for the narrow components EM can fit.
+            centre = (lo + hi) / 2
+            xc, mc = x - centre, self.means - centre
+            w = jnp.exp(-2 * self.log_scales)
+            dot = lambda a, b: jnp.matmul(a, b.T, precision=jax.lax.Precision.HIGHEST)
+            quad = dot(xc**2, w) - 2 * dot(xc, w * mc) + jnp.sum(w * mc**2, axis=-1)
+        else:
+            quad = jnp.sum(((x[:, None, :] - self.means) / sigma) ** 2, axis=-1)
+        return const - 0.5 * quad
 
     def log_pdf(self, x):
         xm, batch = _as_matrix(self, x)
