@@ -22,14 +22,18 @@ The candidates:
   resolve, where the realised rate is too; the smaller of two ratios of
   quarter, half and whole nets that it replaced read 0 on most and left QMC
   10-300x pessimistic. The same points, each uniform, also give plain Monte
-  Carlo's variance: when QMC beats it by `QMC_CLEAR_WIN` per evaluation, the
-  integrand is smooth at this scale, no grid gains that much, and the grid is
-  not trained. A pilot whose mean a
+  Carlo's variance: when QMC beats it by `clear_win_gain` per evaluation (15 on
+  nets of 512 points, 30 on 4096), the integrand is smooth at this scale, no
+  grid gains that much, and the grid is not trained. A pilot whose mean a
   handful of points carried (effective sample size below `MIN_PILOT_ESS`:
   a narrow peak) measured nothing. Values with a power-law tail (Pareto
   $\hat k > 0.2$: an unbounded integrand such as $x^{-1/2}$) keep QMC near
   plain MC's variance while its replicas' spread comes out small: there QMC is
-  credited with plain MC's variance, never a clear win.
+  credited with plain MC's variance, never a clear win. (Bounded peaks show
+  such a $\hat k$ before their tail ends: Genz's 8-D corner peak 0.1-0.47 on
+  the pilot's points, 16 keys; but the corner singularity $(\sum x)^{-3/2}$ in
+  4-D, 0.17-0.68, overlaps them in $\hat k$, in QMC's gain and in how few
+  values carry the second moment, at $10^5$ and $10^6$ alike.)
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
   $\sigma^2_m$ of its last round, hedged (a geometric mean) with the scatter of
@@ -119,7 +123,11 @@ MIXTURE_MAX_VARIANCE = 9.0
 # The lowest relative variance per evaluation expected of a mixture seeded from the
 # grid: measured 0.02-0.07 on vegas's and i-flow's Gaussians and camels at 1e5.
 MIXTURE_FLOOR = 0.01
-QMC_CLEAR_WIN = 1000.0  # QMC's pilot gain over plain MC beyond which no grid is tried
+# QMC's pilot gain over plain MC beyond which no grid is tried, on nets of 512 points (it
+# grows with them: `clear_win_gain`). Measured, 3 keys of each `auto` benchmark case: where
+# QMC then won, 10-140 on nets of 512 (1e5) and 23-1e7 on 4096 (1e6); where a grid or its
+# mixture did, at most 10 and 22 (power-law tails aside: they are never a clear win).
+QMC_CLEAR_WIN = 15.0
 SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
 # A young grid this much costlier than QMC is not trained on. Measured after 3 and 10
 # rounds, against QMC's projected cost, 4 keys of 19 of the `auto` benchmark's cases at 1e5
@@ -174,6 +182,13 @@ def pilot_qmc_points(budget: int) -> int:
     return min(max(1 << int(math.floor(math.log2(share))), 64), 4096)
 
 
+def clear_win_gain(per_replica: int) -> float:
+    """`QMC_CLEAR_WIN` for nets of `per_replica` points: as the cube root of their size (the
+    gain of QMC over plain MC grows with its nets, 2-8x from 512 to 4096 points where QMC
+    won, 1.5-3x where a grid did)."""
+    return QMC_CLEAR_WIN * (per_replica / 512) ** (1 / 3)
+
+
 def _relative_variance(mean, variance) -> jax.Array:
     """Variance scaled by the squared mean (summed over components); scale-free."""
     mean2 = jnp.maximum(mean**2, jnp.finfo(mean.dtype).tiny)
@@ -182,7 +197,7 @@ def _relative_variance(mean, variance) -> jax.Array:
 
 class _QMCPilot(eqx.Module):
     variance: jax.Array  # projected variance per evaluation (relative)
-    clear_win: jax.Array  # QMC beats plain MC on its points by QMC_CLEAR_WIN
+    clear_win: jax.Array  # QMC beats plain MC on its points by `clear_win_gain`
     blind: jax.Array  # saw nothing, or too few effective points to measure anything
 
 
@@ -230,7 +245,8 @@ def _qmc_pilot(key, lo, hi, *, f, per_replica, growth, batched):
     heavy = jnp.any(power_law_tail(tail_of(flat)))
     projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
     blind = jnp.all(mean == 0) | ~measured
-    qmc = _QMCPilot(projected, (plain >= QMC_CLEAR_WIN * full) & measured & ~heavy, blind)
+    clear_win = (plain >= clear_win_gain(per_replica) * full) & measured & ~heavy
+    qmc = _QMCPilot(projected, clear_win, blind)
     # The record of a clear win, made here: eagerly, its three small arrays cost ~0.1 ms.
     alone = Pilot(("qmc",), projected[None], projected[None], jnp.asarray(0, jnp.int32),
                   (per_replica * QMC_REPLICAS,))
@@ -377,7 +393,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     mixture's i.i.d. stream stopped on its skewed weights when their spread
     happened to be small, low (on the 5-D posterior at `rtol=1e-3`, 8 keys: mean
     z -1.6, one key at -4.3; the grid's stream stays within 2.5 sigma).
-    When QMC's pilot beats plain Monte Carlo on the same points by `QMC_CLEAR_WIN` per
+    When QMC's pilot beats plain Monte Carlo on the same points by `clear_win_gain` per
     evaluation (a smooth integrand) no grid is trained at all. Both shortcuts are taken
     outside `jit` only, where the figures are known.
 

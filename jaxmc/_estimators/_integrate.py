@@ -112,8 +112,9 @@ def integrate(
     - `method`:
         - `"auto"` (default): a pilot measures each candidate's variance per
           evaluation — randomised QMC on at most 1/16 of the budget, then,
-          unless QMC already beats plain MC 1000-fold (a smooth integrand), the
-          VEGAS+ grid of `"adaptive"` as it trains (at most a quarter) and, on
+          unless QMC already beats plain MC 15-30-fold on the same points (a
+          smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
+          it trains (at most a quarter) and, on
           a fixed budget, a mixture of Gaussians seeded from the trained grid
           (`est.method` `"mixture"`, streamed i.i.d.) — and spends the rest on
           the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
