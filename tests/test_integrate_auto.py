@@ -48,8 +48,8 @@ def test_auto_chooses_qmc_on_a_smooth_integrand_and_the_grid_on_a_narrow_peak():
 def test_auto_trains_no_grid_where_qmc_gains_tens_of_times():
     # Genz's oscillatory family in 16-D: on the pilot's nets of 512 points QMC beats plain MC
     # only 36-43x (3 keys), not the 1000x once required to skip the grid; a screen of 3
-    # VEGAS+ rounds then cost a third of the call and lost anyway. Nets of 2^14: the same gain
-    # is expected at a higher bar (`clear_win_gain`: 30 at 4096 points).
+    # VEGAS+ rounds then cost two fifths of the call and lost anyway. Larger nets gain more,
+    # and the bar rises with them (`clear_win_gain`: 30 at 4096 points).
     from jaxmc._estimators._auto import clear_win_gain
 
     assert clear_win_gain(512) == 15 and abs(clear_win_gain(4096) - 30) < 1e-9
@@ -89,8 +89,8 @@ def test_auto_trains_a_grid_that_is_still_learning():
 
 
 def test_auto_drops_a_young_grid_far_costlier_than_qmc():
-    # A ball's indicator in 3-D: QMC's pilot beats plain MC 5-26x (no clear win); after 3
-    # rounds the grid measured 30-300x QMC's projected cost per unit variance. Dropped at the
+    # A ball's indicator in 3-D: QMC's pilot beats plain MC 8-10x (no clear win); after 3
+    # rounds the grid measured 20-160x QMC's projected cost per unit variance. Dropped at the
     # screen, the stream keeps the budget of 3 rounds, and its nets are of 2^14 points
     # instead of 2^13. (Keys 0, 1, 3; key 2 trains the grid in full, key 5 is a clear win.)
     r = 0.45

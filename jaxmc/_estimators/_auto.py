@@ -369,8 +369,8 @@ def _with_mixture(qmc: _QMCPilot, v_grid, grid_blind, v_mixture, mixture_blind, 
 
 @jax.jit
 def split_keys(key):
-    """`(the stream's key, the pilot's key)` from `integrate`'s key, the pilot's split in
-    four, in one dispatch (eagerly, the splits and their unpacking cost ~0.1 ms)."""
+    """`(the stream's key, the pilot's four keys)` from `integrate`'s key, in one dispatch
+    (eagerly, the splits and their unpacking cost ~0.1 ms)."""
     pilot_key, key = jax.random.split(key)
     return key, tuple(jax.random.split(pilot_key, 4))
 
