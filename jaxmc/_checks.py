@@ -95,12 +95,16 @@ def check_bounds(lo: Any, hi: Any, finite_volume: bool = False) -> tuple[jax.Arr
         # a tenth of a small `integrate` call).
         canonical = (jax.dtypes.canonicalize_dtype(a.dtype) for a in host)
         dtype = jnp.result_type(*canonical, float)
-        lo_arr, hi_arr = (jnp.asarray(a.astype(dtype)) for a in host)
+        with np.errstate(all="ignore"):  # a float32 overflow shows up as inf, checked below
+            lo_np, hi_np = (a.astype(dtype) for a in host)
+        lo_arr, hi_arr = jnp.asarray(lo_np), jnp.asarray(hi_np)
     else:
         lo_arr = as_real_array(lo, "`lo` must be a real number or a sequence of them")
         hi_arr = as_real_array(hi, "`hi` must be a real number or a sequence of them")
         dtype = jnp.result_type(lo_arr.dtype, hi_arr.dtype, float)
         lo_arr, hi_arr = lo_arr.astype(dtype), hi_arr.astype(dtype)
+        # The values as given (under jit even a Python list is staged by jnp.asarray).
+        lo_np, hi_np = _host_values(lo, dtype), _host_values(hi, dtype)
     if lo_arr.ndim > 1 or hi_arr.ndim > 1:
         raise ValueError(
             f"`lo` and `hi` must be scalars or of shape (d,), got shapes {lo_arr.shape} "
@@ -112,8 +116,6 @@ def check_bounds(lo: Any, hi: Any, finite_volume: bool = False) -> tuple[jax.Arr
         )
     if lo_arr.shape == (0,):
         raise ValueError("`lo` and `hi` must have at least one dimension, got shape (0,).")
-    # The values as given (under jit even a Python list is staged by jnp.asarray).
-    lo_np, hi_np = _host_values(lo, dtype), _host_values(hi, dtype)
     if lo_np is not None and hi_np is not None:
         if not (np.all(np.isfinite(lo_np)) and np.all(np.isfinite(hi_np))):
             raise ValueError(f"`lo` and `hi` must be finite, got lo={lo_np}, hi={hi_np}.")

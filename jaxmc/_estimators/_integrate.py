@@ -224,7 +224,7 @@ def integrate(
     run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,
                *(np.zeros((), lo.dtype) if tol is None else jnp.asarray(tol, lo.dtype)
                  for tol in (rtol, atol)))
-    pilot = None
+    pilot, spent = None, 0
     if method == "auto" and budget < _AUTO_MIN_BUDGET:
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
@@ -256,8 +256,8 @@ def integrate(
         tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
         converged = jnp.all(est.stderr <= tol)
     fields = estimate_fields(est)
-    if pilot is not None:  # the pilot's evaluations count in n
-        fields["n"] = est.n + sum(pilot.evaluations)
+    if spent:  # the pilot's evaluations count in n
+        fields["n"] = est.n + spent
     est = IntegrationEstimate(**fields, method=method, pilot=pilot, converged=converged)
     if tolerant:
         est = _forward_mode_only(est)
