@@ -1,0 +1,151 @@
+r"""The QMC pilot of `integrate(method="auto")`: scrambled Sobol' nets, measured.
+
+`QMC_REPLICAS` scrambled Sobol' nets of a power-of-two size
+(`pilot_qmc_points`, at most 1/16 of the budget), their spread giving the
+variance $\sigma^2_m$ of the mean of their $m$ points, and the variance per
+evaluation $v = m\,\sigma^2_m$ that `_auto` compares. QMC's $v$ keeps falling as its nets grow: the pilot measures
+the rate across an eighth, a quarter, a half and the whole of its nets (the
+first $2^k$ points of a net are a net), $\sigma^2 \propto m^{-1-r}$ with
+$r \in [0, 2]$ fitted by least squares in log-log, and projects $v$ to the
+final net size at that rate (at most `MAX_NET_GROWTH` times the pilot's size).
+Measured against SciPy's nets of $2^{14}$ and $2^{17}$ points on the `auto`
+benchmark's integrands (median of 4 keys), the fitted rate was within 0.6 of
+the realised one on 26 of the 36 Genz cells, at most 1.0 above it (the 16-D
+oscillatory at 1e5) and 1.3 below, and near 0 on the peaks QMC cannot
+resolve, where the realised rate is too; the smaller of two ratios of
+quarter, half and whole nets that it replaced read 0 on most and left QMC
+10-300x pessimistic. The same points, each uniform, also give plain Monte
+Carlo's variance: when QMC beats it by `clear_win_gain` per evaluation (15 on
+nets of 512 points, 30 on 4096), the integrand is smooth at this scale, no
+grid gains that much, and the grid is not trained. A pilot whose mean a
+handful of points carried (effective sample size below `MIN_PILOT_ESS`:
+a narrow peak) measured nothing. Values with a power-law tail (Pareto
+$\hat k > 0.2$: an unbounded integrand such as $x^{-1/2}$) keep QMC near
+plain MC's variance while its replicas' spread comes out small: there QMC is
+credited with plain MC's variance, never a clear win. (Bounded peaks show
+such a $\hat k$ before their tail ends: Genz's 8-D corner peak 0.1-0.47 on
+the pilot's points, 16 keys; but the corner singularity $(\sum x)^{-3/2}$ in
+4-D, 0.17-0.68, overlaps them in $\hat k$, in QMC's gain and in how few
+values carry the second moment, at $10^5$ and $10^6$ alike.)
+
+The pilot looks first at the first quarter of its nets (`per_replica // 4`
+points each): where QMC's clear win is already `EARLY_MARGIN` times the bar for
+nets of that size, the other three quarters are not evaluated and go to the
+stream (at a budget of 1e5: 3 nets of 2^15 instead of 5 of 2^14, 2.4-4.8x
+less variance at QMC's rates).
+"""
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._box import to_box
+from .._diagnostics import power_law_tail, tail_of
+from .._integrand import evaluate, ratio
+from .._points._sobol import sobol_scramble
+from ._stream import QMC_REPLICAS, replica_points
+
+
+PILOT_SHARE = 1 / 16  # at most this share of the budget on the QMC pilot
+# QMC's pilot gain over plain MC beyond which no grid is tried, on nets of 512 points (it
+# grows with them: `clear_win_gain`). Measured, 3 keys of each `auto` benchmark case: where
+# QMC then won, 10-140 on nets of 512 (1e5) and 23-1e7 on 4096 (1e6); where a grid or its
+# mixture did, at most 10 and 22 (power-law tails aside: they are never a clear win).
+QMC_CLEAR_WIN = 15.0
+# The first quarter of the pilot's nets decides a clear win alone at this multiple of
+# `clear_win_gain` for its size (23.6 on nets of 128 points). Measured at 1e5, 5 keys of
+# every `auto` case: 29-2700 on Genz's product peaks and Gaussians (2-16 D) and his 2-D
+# families, 4-42 on his 8- and 16-D oscillatory and discontinuous ones (which decide on
+# the whole nets, as before), at most 11 where a grid or its mixture won (the 8-D corner
+# peak), power-law tails aside.
+EARLY_MARGIN = 2.5
+MIN_PILOT_ESS = 32.0  # fewer effective QMC pilot samples than this measure nothing
+MAX_NET_GROWTH = 32  # most the projection lets QMC's nets grow beyond the pilot's
+MAX_QMC_RATE = 2.0  # scrambled nets on smooth integrands: variance n^-3 (Owen 1997), r = 2
+
+
+def pilot_qmc_points(budget: int) -> int:
+    """Points per replica of the QMC pilot: a power of two, 64 to 4096, within `PILOT_SHARE`."""
+    share = max(budget * PILOT_SHARE / QMC_REPLICAS, 1)
+    return min(max(1 << int(math.floor(math.log2(share))), 64), 4096)
+
+
+def clear_win_gain(per_replica: int) -> float:
+    """`QMC_CLEAR_WIN` for nets of `per_replica` points: as the cube root of their size (the
+    gain of QMC over plain MC grows with its nets, 2-8x from 512 to 4096 points where QMC
+    won, 1.5-3x where a grid did)."""
+    return QMC_CLEAR_WIN * (per_replica / 512) ** (1 / 3)
+
+
+def relative_variance(mean, variance) -> jax.Array:
+    """Variance scaled by the squared mean (summed over components); scale-free."""
+    mean2 = jnp.maximum(mean**2, jnp.finfo(mean.dtype).tiny)
+    return jnp.sum(jnp.where(mean != 0, variance / mean2, variance))
+
+
+class QMCFigures(eqx.Module):
+    """What the QMC pilot's nets measured."""
+
+    variance: jax.Array  # projected variance per evaluation (relative)
+    clear_win: jax.Array  # QMC beats plain MC on its points by `clear_win_gain`
+    blind: jax.Array  # saw nothing, or too few effective points to measure anything
+
+
+def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
+    """Integrand values `(QMC_REPLICAS, blocks * 2**log2_block, ...)` on blocks `first`,
+    ..., `first + blocks - 1` of `2**log2_block` points of the pilot's scrambled Sobol'
+    nets (one scramble per replica, from `key`)."""
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    volume = jnp.prod(hi - lo)
+
+    def replica(k):
+        scramble = sobol_scramble(k, d)
+        u = jnp.concatenate([replica_points(scramble, first + b, log2_block, lo.dtype)
+                             for b in range(blocks)])
+        y, _ = ratio(evaluate(f, to_box(u if lo.ndim else u[:, 0], lo, hi), batched), 1 / volume)
+        return y
+
+    return jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
+
+
+def measure_nets(y, growth, bar):
+    """QMC's figures from its replicas' values `y` `(QMC_REPLICAS, m, ...)`: `QMCFigures`,
+    a clear win where plain MC's variance per evaluation on the same points is `bar`
+    times QMC's."""
+    per_replica = y.shape[1]
+
+    def relative_variance_per_evaluation(values):
+        means = jnp.mean(values, axis=1)
+        variance = jnp.var(means, axis=0, ddof=1) / QMC_REPLICAS
+        return relative_variance(jnp.mean(means, axis=0), variance) * values.shape[0] * values.shape[1]
+
+    # The first half (quarter, eighth) of a net is a net: its variance at four sizes.
+    sizes = [per_replica >> k for k in (3, 2, 1, 0)]
+    by_size = jnp.stack([relative_variance_per_evaluation(y[:, :m]) for m in sizes])
+    full = by_size[-1]
+    flat = jnp.reshape(y, (-1,) + y.shape[2:])
+    mean = jnp.mean(flat, axis=0)
+    plain = relative_variance(mean, jnp.var(flat, axis=0, ddof=1))
+    # Effective sample size (sum |y|)^2 / sum y^2: ~1 when a single point hit a peak.
+    tiny = jnp.finfo(flat.dtype).tiny
+    ess = jnp.min(jnp.sum(jnp.abs(flat), axis=0) ** 2 / jnp.maximum(jnp.sum(flat**2, axis=0), tiny))
+    measured = ess >= MIN_PILOT_ESS
+    # QMC's variance per evaluation keeps falling as its nets grow, at the rate the pilot
+    # shows across its four sizes (least squares in log-log: each size's figure is an
+    # 8-replica variance, noisy): n^-(1+r) per replica, r in [0, MAX_QMC_RATE], 0 being
+    # plain MC's rate.
+    doublings = jnp.arange(len(sizes), dtype=full.dtype) - (len(sizes) - 1) / 2  # centred log2(m)
+    rate = -jnp.sum(doublings * jnp.log2(by_size)) / jnp.sum(doublings**2)
+    rate = jnp.clip(jnp.where(jnp.isfinite(rate), rate, 0.0), 0.0, MAX_QMC_RATE)
+    projected = full * jnp.asarray(growth, full.dtype) ** -rate
+    # An unbounded integrand (a power-law tail of the values, k-hat > 0.2) keeps QMC's
+    # variance near plain MC's and makes the replicas' spread skewed and small (the bound of
+    # `bounded_variance`): QMC is credited with plain MC's variance there, and no clear win.
+    heavy = jnp.any(power_law_tail(tail_of(flat)))
+    projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
+    blind = jnp.all(mean == 0) | ~measured
+    clear_win = (plain >= bar * full) & measured & ~heavy
+    return QMCFigures(projected, clear_win, blind)
