@@ -46,6 +46,10 @@ def _scipy_sample(rng, gm: GaussianMixture, n: int):
     return x, np.prod(density, axis=-1) @ weights
 
 
+def _rate(timing, n: int) -> dict:
+    return {**timing.summary(), "points_per_s": n / timing.median_s}
+
+
 def run(ctx: Context) -> Result:
     with jax.enable_x64(True):
         return _run(ctx)
@@ -63,10 +67,9 @@ def _run(ctx: Context) -> Result:
         for name, proposal in (("GaussianMixture", gm), ("Grid", grid), ("Mixture", mixture)):
             keys = iter(jax.random.split(jax.random.key(0), repeats + 1))
             timing = time_call(lambda p=proposal, ks=keys: sample(p, next(ks)), repeats=repeats)
-            rates[name] = {**timing.summary(), "points_per_s": n / timing.median_s}
+            rates[name] = _rate(timing, n)
         rng = np.random.default_rng(0)
-        timing = time_call(lambda: _scipy_sample(rng, gm, n), repeats=repeats)
-        rates["scipy"] = {**timing.summary(), "points_per_s": n / timing.median_s}
+        rates["scipy"] = _rate(time_call(lambda: _scipy_sample(rng, gm, n), repeats=repeats), n)
         for name in ("GaussianMixture", "Grid", "Mixture"):
             rate = rates[name]["points_per_s"]
             rows.append([d, name, rate / 1e6, rate / rates["scipy"]["points_per_s"],

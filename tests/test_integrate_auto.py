@@ -96,13 +96,14 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     # The whole nets' figures are the same whether their first quarter was evaluated
     # by the early look or with the rest (to rounding: the sums fuse differently).
     from jaxmc._estimators._auto import _qmc_early_look, _qmc_pilot
+    from jaxmc._estimators._pilot_nets import clear_win_gain, measure_nets, net_values
 
     lo, hi = box(3)
-    key = jax.random.key(3)
-    settings = dict(f=peak(3, s=0.1), per_replica=512, batched=False)
-    early, _, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
-    whole, _ = _qmc_pilot(key, lo, hi, None, growth=8.0, **settings)
-    reused, _ = _qmc_pilot(key, lo, hi, early, growth=8.0, **settings)
+    key, f = jax.random.key(3), peak(3, s=0.1)
+    settings = dict(f=f, per_replica=512, batched=False)
+    early, early_win, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
+    reused, _ = _qmc_pilot(key, lo, hi, early, early_win, growth=8.0, **settings)
+    whole = measure_nets(net_values(key, lo, hi, f, False, 0, 4, 7), 8.0, clear_win_gain(512))
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(reused)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10)
 

@@ -170,18 +170,13 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
 
 
 @eqx.filter_jit
-def _qmc_pilot(key, lo, hi, early=None, early_win=False, *, f, per_replica, growth, batched):
+def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured: `(QMCFigures,
     the `Pilot` of QMC alone)`. `early`, `early_win`: the values of their first quarter and
-    its verdict, if already evaluated (`_qmc_early_look`); only the rest is evaluated then,
-    and an early clear win stands (under `jit`, where it could not end the pilot)."""
-    log2_quarter = (per_replica // 4).bit_length() - 1
-    if early is None:
-        y = net_values(key, lo, hi, f, batched, 0, 4, log2_quarter)
-    else:
-        y = jnp.concatenate([early, net_values(key, lo, hi, f, batched, 1, 3, log2_quarter)],
-                            axis=1)
-    qmc = measure_nets(y, growth, clear_win_gain(per_replica))
+    its verdict (`_qmc_early_look`); only the rest is evaluated here, and an early clear win
+    stands (under `jit`, where it could not end the pilot)."""
+    rest = net_values(key, lo, hi, f, batched, 1, 3, (per_replica // 4).bit_length() - 1)
+    qmc = measure_nets(jnp.concatenate([early, rest], axis=1), growth, clear_win_gain(per_replica))
     qmc = eqx.tree_at(lambda q: q.clear_win, qmc, qmc.clear_win | early_win)
     return qmc, _alone(qmc, per_replica * QMC_REPLICAS)
 
