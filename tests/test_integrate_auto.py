@@ -280,12 +280,12 @@ def test_qmc_pilot_fits_the_rate_of_its_nets():
     # (least squares in log-log): a smooth integrand shows scrambled nets' rate, variance
     # near n^-3 (r = 2; measured 0.9-2.0 over keys on cos_product in 2-D, median 1.9), a
     # 4-D peak the nets cannot resolve shows plain Monte Carlo's (r = 0 on every key).
-    from jaxmc._estimators._auto import _qmc_pilot
+    from jaxmc._estimators._pilot_nets import clear_win_gain, measure_nets, net_values
 
     def rate(f, d, seed):
         lo, hi = box(d)
-        v = [_qmc_pilot(jax.random.key(seed), lo, hi, f=f, per_replica=512, growth=jnp.asarray(g),
-                        batched=False)[0] for g in (1.0, 2.0)]
+        y = net_values(jax.random.key(seed), lo, hi, f, False, 0, 4, 7)  # 4 quarters of 512
+        v = [measure_nets(y, jnp.asarray(g), clear_win_gain(512)) for g in (1.0, 2.0)]
         assert not bool(v[0].blind)
         return float(np.log2(v[0].variance / v[1].variance))
 
