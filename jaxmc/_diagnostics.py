@@ -47,6 +47,7 @@ __all__ = [
     "ReliabilityWarning",
     "rounding_floor",
     "tail_of",
+    "tail_sums",
     "empty_tail",
     "merge_tails",
     "gather_tails",
@@ -174,6 +175,21 @@ def tail_of(c: jax.Array, valid: jax.Array | None = None) -> Tail:
         nonzero=jnp.sum(a > 0, axis=0).astype(c.dtype),
         top=_largest(a, 0),
     ))
+
+
+@jax.jit
+def tail_sums(c: jax.Array) -> Tail:
+    """The `Tail` of contributions `c` `(n, ...)` without their largest values (zeros there):
+    its sums only, for a loop that needs the largest values of a few rounds alone (their
+    search is half the time of a VEGAS+ round of 2048 points on a CPU)."""
+    a = jnp.abs(jnp.asarray(c))
+    return Tail(
+        count=jnp.asarray(a.shape[0], a.dtype),
+        abs_sum=jnp.sum(a, axis=0),
+        sq_sum=jnp.sum(a * a, axis=0),
+        nonzero=jnp.sum(a > 0, axis=0).astype(a.dtype),
+        top=jnp.zeros(a.shape[1:] + (TAIL + 1,), a.dtype),
+    )
 
 
 def empty_tail(shape: tuple[int, ...], dtype) -> Tail:

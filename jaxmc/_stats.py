@@ -40,6 +40,7 @@ from ._diagnostics import (
     reliability_reasons as reliability_reasons,
     rounding_floor as rounding_floor,
     tail_of,
+    tail_sums,
     unreliable as unreliable,
 )
 from ._format import estimate_repr, estimate_str
@@ -291,9 +292,10 @@ def estimate_iid(y: jax.Array, bad: jax.Array) -> Estimate:
 _LANE = 128
 
 
-def block_moments(y: jax.Array, valid: jax.Array) -> Moments:
+def block_moments(y: jax.Array, valid: jax.Array, with_tail: bool = True) -> Moments:
     """Moments of one block of values `(n, ...)` (rows where `valid`) by a two-level
-    reduction: lanes of 128 rows, then a balanced tree (`merge_all`)."""
+    reduction: lanes of 128 rows, then a balanced tree (`merge_all`); without their `Tail`
+    unless `with_tail` (a caller that holds many blocks finds their largest values at once)."""
     block = y.shape[0]
     lane = min(_LANE, block)
     rows = -(-block // lane)
@@ -308,7 +310,8 @@ def block_moments(y: jax.Array, valid: jax.Array) -> Moments:
     safe = jnp.maximum(count, 1).reshape((rows,) + (1,) * (y.ndim - 1))
     mean = jnp.sum(y2 * mask, axis=1) / safe
     m2 = jnp.sum(mask * (y2 - mean[:, None]) ** 2, axis=1)
-    return merge_all(Moments(count, mean, m2))._replace(tail=tail_of(y, valid))
+    m = merge_all(Moments(count, mean, m2))
+    return m._replace(tail=tail_of(y, valid)) if with_tail else m
 
 
 def merge_across_devices(m: Moments, axes: tuple[str, ...]) -> Moments:
@@ -333,7 +336,9 @@ def slot_of_sample(counts: jax.Array, n: int) -> jax.Array:
     return jnp.cumsum(jnp.zeros((n,), jnp.int32).at[starts].add(1, mode="drop"))
 
 
-def stratified_estimate(y, slot, counts, volume, n_nonfinite) -> tuple[Estimate, jax.Array]:
+def stratified_estimate(
+    y, slot, counts, volume, n_nonfinite, diagnostics: bool = True
+) -> tuple[Estimate, jax.Array]:
     r"""The stratified estimate from values `y` `(n, ...)` laid out stratum by stratum (§4.2).
 
     Stratum $h$ of relative volume $v_h$ (`volume`: one scalar for equal strata,
@@ -343,7 +348,9 @@ def stratified_estimate(y, slot, counts, volume, n_nonfinite) -> tuple[Estimate,
     $$\hat I = \sum_h v_h \bar y_h,\qquad \hat V = \sum_h v_h^2\, s_h^2 / n_h.$$
     Strata with fewer than two samples contribute no variance. When the
     contributions have a power-law tail the variance is at least their i.i.d.
-    one (`bounded_variance`: pairs in strata miss a singularity).
+    one (`bounded_variance`: pairs in strata miss a singularity). Without
+    `diagnostics` the largest values are not sought: no Pareto $\hat k$ (NaN)
+    and no such bound, for rounds whose variance is not reported.
 
     **Returns:** the `Estimate` and the per-stratum variances $s_h^2$ `(H, ...)`.
     """
@@ -363,10 +370,14 @@ def stratified_estimate(y, slot, counts, volume, n_nonfinite) -> tuple[Estimate,
         variance = jnp.sum(v**2 * var_h / per_stratum, axis=0)
     # The diagnostics are of the values y = f/p themselves: weighted by an uneven allocation
     # (VEGAS+) the contributions' spread would reflect the allocation, not a heavy tail.
+    n = jnp.asarray(y.shape[0], jnp.int32)
+    if not diagnostics:
+        fields = diagnosed(mean, variance, n, n_nonfinite, tail_sums(y))
+        fields["pareto_k"] = jnp.full_like(fields["pareto_k"], jnp.nan)
+        return Estimate(**fields), var_h
     tail = tail_of(y)
     # (For adaptive rounds `combine` flags the combination only when conservative rounds
     # carry most of its weight: a young grid's round on a peak often is, and says little.)
     variance, conservative = bounded_variance(variance, mean, tail)
-    n = jnp.asarray(y.shape[0], jnp.int32)
     est = Estimate(**diagnosed(mean, variance, n, n_nonfinite, tail, conservative))
     return est, var_h

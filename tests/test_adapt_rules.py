@@ -160,6 +160,23 @@ def test_active_rounds_are_the_first_rounds_of_a_shorter_run(key, keep_samples):
             np.testing.assert_array_equal(samples.x, ref_samples.x)
 
 
+def test_vegas_plus_rounds_without_diagnostics(key):
+    """`VegasPlus(diagnostics=False)` runs the same rounds (grids, means, effective sample
+    sizes) and skips only the search for the largest values: k-hat is NaN and a power-law
+    tail no longer raises a round's variance to its i.i.d. bound."""
+    singular = lambda x: jnp.prod(x**-0.4)  # noqa: E731  (a power-law tail, k = 0.4 per axis)
+    runs = [run_adaptation(VegasPlus(diagnostics=flag), key, Integrand(singular), Grid(LO, HI, 16),
+                           4, 2048)
+            for flag in (True, False)]
+    (parts, state, _), (quick, quick_state, _) = runs
+    np.testing.assert_array_equal(quick.mean, parts.mean)
+    np.testing.assert_array_equal(quick_state.grid.logits, state.grid.logits)
+    np.testing.assert_allclose(quick.ess, parts.ess, rtol=1e-5)
+    assert np.all(np.isnan(quick.pareto_k)) and np.all(np.asarray(parts.pareto_k) > 0.2)
+    assert np.all(np.asarray(quick.variance) <= np.asarray(parts.variance))
+    assert np.any(np.asarray(quick.variance) < np.asarray(parts.variance))  # the bound acted
+
+
 def test_chain_seeds_a_mixture_from_the_grid(key):
     """VEGAS+ finds the peaks; a mixture seeded from its weighted samples puts a component on
     each, is refitted, and the combined estimate of every kept round is unbiased and beats the

@@ -30,7 +30,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._diagnostics import pareto_k, tail_of
 from .._fit._vegas import strata_per_axis
+from .._integrand import ratio
 from .._progress import report
 from .._stats import Estimate, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
@@ -87,8 +89,10 @@ def refining_rounds(budget: int, block: int, tolerant: bool) -> int:
 
 
 def train_vegas_plus(key, f, grid, rounds, block, batched):
-    """`rounds` VEGAS+ rounds of `block` points from `grid`: the trained state (estimates discarded)."""
-    _, state, _ = run_adaptation(VegasPlus(), key, Integrand(f, batched), grid, rounds, block)
+    """`rounds` VEGAS+ rounds of `block` points from `grid`: the trained state (estimates discarded,
+    so the rounds skip their diagnostics)."""
+    rule = VegasPlus(diagnostics=False)
+    _, state, _ = run_adaptation(rule, key, Integrand(f, batched), grid, rounds, block)
     return state
 
 
@@ -98,7 +102,7 @@ def frozen_vegas_plus(state, block: int):
     return state.grid, state.draw.counts, strata_per_axis(state.grid.dim, block, VegasPlus().max_strata)
 
 
-def average_rounds(parts: Estimate, done) -> Estimate:
+def average_rounds(parts: Estimate, done, last_values=None) -> Estimate:
     r"""The first `done` rounds of `parts`, averaged with weights that grow with the round.
 
     Round $i$ (from 1) gets weight $p_i = i / \sum_j j$: later rounds, drawn from
@@ -113,7 +117,9 @@ def average_rounds(parts: Estimate, done) -> Estimate:
     report small variances: on the coverage suite's thin shell (rounds of 256
     points), weighted as `combine(..., sequential=True)` weighs them, 0 of 200
     runs covered the truth and a third were flagged; with these weights 34%
-    cover and 90% are flagged.
+    cover and 90% are flagged. The Pareto $\hat k$ is that of `last_values`, the
+    values $f/p$ of the last round (the rounds themselves skip the search for
+    their largest values, `VegasPlus(diagnostics=False)`); NaN without them.
     """
     k = parts.mean.shape[0]
     dtype = parts.mean.dtype
@@ -137,9 +143,8 @@ def average_rounds(parts: Estimate, done) -> Estimate:
         mean=mean, variance=jnp.maximum(variance, floor**2), n=total(parts.n),
         n_nonfinite=total(parts.n_nonfinite), ess=total(parts.ess),
         n_nonzero=total(parts.n_nonzero),
-        pareto_k=jnp.sum(
-            per_round(weight / jnp.sum(weight), parts.pareto_k)
-            * jnp.where(per_round(used, parts.pareto_k), parts.pareto_k, 0), axis=0),
+        pareto_k=(jnp.full(jnp.shape(mean), jnp.nan, dtype) if last_values is None
+                  else pareto_k(tail_of(last_values))),
         conservative=jnp.zeros(jnp.shape(mean), bool),
         dof=jnp.maximum(rounds_in_effect - 1, 1),  # a scatter of k_e rounds (Satterthwaite)
     )
@@ -160,20 +165,27 @@ def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=Fal
     Returns the average (an `Estimate`) and the final state. With `progress`, each
     round's estimate goes to the progress bar (as `jaxmc.fit.adapt` shows them).
     """
-    rule, integrand = VegasPlus(), Integrand(f, batched)
-    carry, static = eqx.partition(state, eqx.is_array)
+    # The rounds skip their diagnostics; the last round's values give the average's.
+    rule, integrand = VegasPlus(diagnostics=False), Integrand(f, batched)
+    state_carry, static = eqx.partition(state, eqx.is_array)
 
     def one_round(carry, i):
-        new_state, est, _ = rule.step(key, i, eqx.combine(carry, static), integrand)
+        new_state, est, samples = rule.step(key, i, eqx.combine(carry[0], static), integrand)
         if progress:
             n = state.draw.u.shape[0]
             jax.debug.callback(functools.partial(_report_round, total=rounds * n),
                                est.mean, est.stderr, (i + 1) * n, i == rounds - 1)
-        return eqx.partition(new_state, eqx.is_array)[0], Estimate(**estimate_fields(est))
+        carry = (eqx.partition(new_state, eqx.is_array)[0], (samples.fx, samples.log_q))
+        return carry, Estimate(**estimate_fields(est))
 
+    def last_values(last):  # f/p of the last round
+        return ratio(last[0], jnp.exp(last[1]))[0]
+
+    no_values = jax.eval_shape(lambda c: one_round((c, None), jnp.int32(0))[0][1], state_carry)
+    carry = (state_carry, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), no_values))
     if not tolerant:
-        carry, parts = jax.lax.scan(one_round, carry, jnp.arange(rounds))
-        return average_rounds(parts, rounds), eqx.combine(carry, static)
+        (state_carry, last), parts = jax.lax.scan(one_round, carry, jnp.arange(rounds))
+        return average_rounds(parts, rounds, last_values(last)), eqx.combine(state_carry, static)
 
     # A buffer for every round; `average_rounds` reads only the first `done`.
     shape = jax.eval_shape(lambda c: one_round(c, jnp.int32(0))[1], carry)
@@ -187,7 +199,7 @@ def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=Fal
         met = jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
         return i + 1, carry, parts, met & (i + 1 >= MIN_ROUNDS_TO_STOP)
 
-    done, carry, parts, _ = jax.lax.while_loop(
+    done, (state_carry, last), parts, _ = jax.lax.while_loop(
         lambda loop: (loop[0] < rounds) & ~loop[3], body, (jnp.int32(0), carry, empty, False)
     )
-    return average_rounds(parts, done), eqx.combine(carry, static)
+    return average_rounds(parts, done, last_values(last)), eqx.combine(state_carry, static)

@@ -92,6 +92,7 @@ class QMCFigures(eqx.Module):
     variance: jax.Array  # projected variance per evaluation (relative)
     clear_win: jax.Array  # QMC beats plain MC on its points by `clear_win_gain`
     blind: jax.Array  # saw nothing, or too few effective points to measure anything
+    heavy: jax.Array  # the values have a power-law tail (Pareto k-hat > 0.2)
 
 
 def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
@@ -148,4 +149,4 @@ def measure_nets(y, growth, bar):
     projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
     blind = jnp.all(mean == 0) | ~measured
     clear_win = (plain >= bar * full) & measured & ~heavy
-    return QMCFigures(projected, clear_win, blind)
+    return QMCFigures(projected, clear_win, blind, heavy)

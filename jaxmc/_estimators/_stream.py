@@ -257,13 +257,13 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             )
             # Slots past the budget (the last step's spare ones) are dropped.
             m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
-            return m, jnp.where(inside, evaluations, 0), jnp.where(inside, bad, 0)
+            return m, jnp.where(inside, evaluations, 0), jnp.where(inside, bad, 0), None
         x, px = points_of_block(b)
         fx = evaluate(f, x, batched)
         y, bad = ratio(fx, px)
         index = b * plan.block + jnp.arange(plan.block)
         valid = (index < plan.budget) & inside
-        m = block_moments(y, valid)
+        m = block_moments(y, valid, with_tail=False)  # the step's tail comes from all its blocks
         if not per_sample:
             # The block is one randomisation: one observation, its mean.
             unit = jnp.where(m.count > 0, 1.0, 0.0).astype(dtype)
@@ -272,19 +272,26 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             # Its replica's running mean weighs it by its points.
             m = _one_hot_moments(m._replace(count=m.count * plan.block), b % plan.replicas,
                                  plan.replicas)
-        return m, jnp.sum(valid, dtype=jnp.int32), jnp.sum(bad & valid, dtype=jnp.int32)
+        evaluations = jnp.sum(valid, dtype=jnp.int32)
+        return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
 
     def local(t, device):
         # Device j takes slots [j * per_device, (j + 1) * per_device) of step t's blocks.
         slot = device * plan.per_device + jnp.arange(plan.per_device, dtype=jnp.int32)
         blocks = t * plan.per_step + slot
         inside = (slot < plan.per_step) & (blocks < plan.blocks)
-        m, evaluations, bad = jax.vmap(moments_of_block)(blocks, inside)
-        return merge_all(m), jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
+        m, evaluations, bad, values = jax.vmap(moments_of_block)(blocks, inside)
+        m = merge_all(m)
+        if values is not None:
+            # One search for the largest values among all the step's blocks: a block's own
+            # search and the merges of their tails cost twice as much (on a CPU).
+            y, valid = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + a.shape[2:]), values)
+            m = m._replace(tail=tail_of(y, valid))
+        return m, jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
 
     # One device needs no collectives (and `stream_on_mesh` no shard_map): compiles stay short.
     sharded = partial(local, device=0) if mesh.size == 1 else partial(_across_devices, local, mesh)
-    start = _empty_like(jax.eval_shape(lambda: moments_of_block(jnp.int32(0), True)[0]))
+    start = _empty_like(jax.eval_shape(lambda: local(jnp.int32(0), 0)[0]))
     zero = jnp.zeros((), jnp.int32)
     start, zero = jax.tree.map(partial(_carry_typed, mesh=mesh), (start, zero))
 
