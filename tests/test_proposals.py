@@ -93,6 +93,42 @@ def test_normalised_and_consistent(key, name):
     assert abs(float(est) - 3.0) < 5 * float(se) + 1e-9
 
 
+def test_stratified_mixture_draws_its_shares(key):
+    """`Mixture(..., stratified=True)`: n w_k points from component k (largest remainders),
+    each with its density under the mixture of the realised shares: an unbiased estimate."""
+    props = _proposals(key)
+    parts, weights = (props["gm"], props["grid"], Uniform(LO2, HI2)), (0.5, 0.3, 0.2)
+    mix = Mixture(parts, weights, stratified=True)
+    assert mix.counts(1000) == (500, 300, 200) and mix.counts(7) == (4, 2, 1)  # 3.5, 2.1, 1.4
+    x, p = sample(mix, key, 7)
+    shares = jnp.asarray(mix.counts(7)) / 7
+    expected = sum(s * pdf(q, x) for s, q in zip(shares, parts))
+    np.testing.assert_allclose(p, expected, rtol=1e-6)
+    # The four points of the Gaussian mixture, turned by the random offset with the others.
+    gm_points = sample(props["gm"], jax.random.split(key, 4)[1], 4)[0]
+    assert sum(bool(jnp.any(jnp.all(x == g, axis=-1))) for g in gm_points) == 4
+    # Unbiased for the integral of a peaked f over many keys (within 5 standard errors).
+    f = lambda x: jnp.exp(-20.0 * jnp.sum((x - jnp.array([0.3, 0.0])) ** 2, axis=-1))  # noqa: E731
+    exact = float(_quad_2d(f, LO2, HI2, m=1000))
+
+    @eqx.filter_jit
+    def estimates(q, keys, m):
+        def one(k):
+            x, p = q.sample(k, 64)
+            return jnp.mean(f(x[:m]) / p[:m])
+        return jax.vmap(one)(keys)
+
+    # All 64 points, and the first 20 (as a stream's last, partly used block keeps them).
+    for m in (64, 20):
+        strat = estimates(mix, jax.random.split(jax.random.fold_in(key, 2), 4000), m)
+        se = float(jnp.std(strat)) / np.sqrt(strat.shape[0])
+        assert abs(float(jnp.mean(strat)) - exact) < 5 * se, (m, float(jnp.mean(strat)), exact, se)
+    with pytest.raises(ValueError, match="stratified"):
+        Mixture(parts, weights, stratified=True, train_weights=True)
+    with pytest.raises(ValueError, match="stratified"):
+        Mixture(parts, weights).counts(10)
+
+
 @pytest.mark.parametrize("name", ["gm", "grid", "linear", "partition"])
 def test_sampling_law_1d(key, name):
     """Binned chi-square of 1-D samples against the pdf integrated per bin."""

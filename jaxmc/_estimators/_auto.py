@@ -36,7 +36,9 @@ The candidates:
   (`GaussianMixture.from_samples` on the weights $|f|\,w/q$: EM towards the
   density $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed with
   the grid itself at `DEFENSIVE_SHARE` (defensive importance sampling,
-  Hesterberg 1995), measured on up to `MIXTURE_PILOT_POINTS` i.i.d. points.
+  Hesterberg 1995), measured on up to `MIXTURE_PILOT_POINTS` points, each part
+  drawing its share of them (`Mixture(..., stratified=True)`: no point drawn
+  from both parts and then chosen between them).
   A grid is a product of axis densities: a peak along a diagonal, or several
   peaks, make it put mass on every combination of the axes' bins, which a
   mixture of Gaussians does not (measured, variance per evaluation against the
@@ -51,7 +53,7 @@ The candidates:
   `MIXTURE_MAX_VARIANCE`: the grid's figure is its last training round's, and
   the grid goes on adapting (on the 10-D ball it measured 200-2000 and then
   ran at ~4) while the mixture stays as fitted. If it wins, the rest of the
-  budget streams i.i.d. from it (`method="importance"` blocks of `_stream`).
+  budget streams from it (`method="importance"` blocks of `_stream`).
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
 readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
@@ -102,7 +104,7 @@ DEFENSIVE_SHARE = 0.1  # the trained grid's share of the mixture
 # 5-D posterior) in 8 ms instead of 19.
 MIXTURE_EM_ITERATIONS = 20
 MIXTURE_FIT_POINTS = 4096  # at most this many of the grid's points seed the mixture
-MIXTURE_PILOT_POINTS = 4096  # at most this many i.i.d. points measure it
+MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
 # The mixture is a candidate only below this relative variance per evaluation, where
 # its effective sample size n / (1 + v) is above n / 10 (`diagnostics.HEAVY_TAIL_ESS_SHARE`).
 MIXTURE_MAX_VARIANCE = 9.0
@@ -229,12 +231,12 @@ def seeded_mixture(grid: Grid, samples) -> Mixture:
     weights = jnp.where(jnp.sum(weights) > 0, weights, 1.0)
     gm = GaussianMixture.from_samples(samples.x, weights / jnp.sum(weights), grid.lo, grid.hi,
                                       components=MIXTURE_COMPONENTS, iterations=MIXTURE_EM_ITERATIONS)
-    return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE))
+    return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE), stratified=True)
 
 
 @eqx.filter_jit
 def _mixture_pilot(key, grid, samples, *, f, size, batched):
-    """Fit `seeded_mixture` and measure it on `size` i.i.d. points: `(relative variance
+    """Fit `seeded_mixture` and measure it on `size` points: `(relative variance
     per evaluation, blind, the mixture)`."""
     mixture = seeded_mixture(grid, samples)
     x, p = mixture.sample(key, size)
@@ -328,7 +330,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     `MIXTURE_PILOT_POINTS` points, unless QMC or the grid already costs less than
     a mixture at `MIXTURE_FLOOR` would, in one dimension (a grid there is any
     piecewise-constant density), or with a tolerance (`tolerant`): there the
-    mixture's i.i.d. stream stopped on its skewed weights when their spread
+    mixture's stream stopped on its skewed weights when their spread
     happened to be small, low (on the 5-D posterior at `rtol=1e-3`, 8 keys: mean
     z -1.6, one key at -4.3; the grid's stream stays within 2.5 sigma).
     When QMC's pilot beats plain Monte Carlo on the same points by `clear_win_gain` per

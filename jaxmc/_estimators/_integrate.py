@@ -116,7 +116,7 @@ def integrate(
           smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
           it trains (at most a quarter) and, on a fixed budget, a mixture of
           Gaussians seeded from the trained grid (`est.method` `"mixture"`,
-          streamed i.i.d.) — and spends the rest on
+          streamed as importance sampling) — and spends the rest on
           the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
           for the rules); `est.method` names the winner and `est.pilot` keeps
           the figures. The pilot's evaluations count in `n` but not in the
@@ -238,7 +238,7 @@ def integrate(
             lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
-            # i.i.d. from the mixture the pilot seeded from the grid.
+            # Importance sampling from the mixture the pilot seeded from the grid.
             lambda: run.block_method("importance", key, rest, spent, frozen=mixture,
                                      chunk=mixture_chunk),
         )[: len(pilot.candidates)]

@@ -14,7 +14,9 @@ is bounded by the chunk and float32 stays accurate over $10^9$ samples.
 Three kinds of statistical unit are used:
 
 - Plain Monte Carlo, and importance sampling from a fixed proposal (the
-  density `"auto"` fitted, `frozen`), treat every sample as an i.i.d. observation.
+  density `"auto"` fitted, `frozen`), treat every sample as an i.i.d. observation
+  (for a mixture whose parts draw fixed shares, a conservative error bar: that
+  stratification only lowers the variance).
 - Stratification and VEGAS+ make the samples inside a block dependent; each
   block is one independent randomisation (an unbiased estimate on its own) and
   the variance comes from the spread of the block means.
@@ -234,7 +236,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
 
     def points_of_block(b):
         """The block's points `x` and their density `p(x)`."""
-        if method == "importance":  # i.i.d. from the frozen proposal
+        if method == "importance":  # from the frozen proposal
             return frozen.sample(jax.random.fold_in(key, b), plan.block)
         if method == "qmc":
             r, position = b % plan.replicas, b // plan.replicas
