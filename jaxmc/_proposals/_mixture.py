@@ -31,12 +31,12 @@ class Mixture(AbstractProposal):
     Zhou 2000). $\frac1n\sum_i f(x_i)/p(x_i)$ stays unbiased, its variance is
     never above that of i.i.d. component choice (the i.i.d. variance of the
     values is then a conservative error bar), and no component is drawn for
-    points it does not serve (a quarter less time per point of `integrate`'s
-    mixture stream in 8-D, where a point drawn from every component and then
-    selected cost both draws). The components' points come evenly interleaved
-    and turned by a uniform random offset, so that each place holds component
-    $k$ with probability $n_k/n$ and any first $m$ of them hold $m n_k/n$ give
-    or take one: their mean is unbiased too, with the variance of the whole's.
+    points it does not serve (`integrate`'s 8-D mixture stream: about 9% less
+    time at $10^6$ points, where every point was drawn from both parts). The
+    components' points come evenly interleaved and turned by a uniform random
+    offset, so that each place holds component $k$ with probability $n_k/n$ and
+    any first $m$ of them hold $m n_k/n$ give or take one: their mean is
+    unbiased too, and the make-up of such a prefix adds no variance of its own.
     """
 
     proposals: tuple
@@ -73,7 +73,7 @@ class Mixture(AbstractProposal):
         self.train_weights = bool(train_weights)
         self.shares = None
         if stratified:
-            if train_weights or not is_concrete(given):
+            if train_weights or not all(is_concrete(w) for w in jax.tree.leaves(given)):
                 raise ValueError(
                     "`stratified=True` needs fixed, concrete `weights` (the points per "
                     "component are static): pass numbers, and train_weights=False."
