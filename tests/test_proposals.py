@@ -127,6 +127,8 @@ def test_stratified_mixture_draws_its_shares(key):
         Mixture(parts, weights, stratified=True, train_weights=True)
     with pytest.raises(ValueError, match="stratified"):
         Mixture(parts, weights).counts(10)
+    with pytest.raises(ValueError, match="stratified"):  # traced weights: counts unknown
+        jax.jit(lambda w: Mixture(parts[:2], [w, 1 - w], stratified=True).log_weights)(0.5)
 
 
 @pytest.mark.parametrize("name", ["gm", "grid", "linear", "partition"])
