@@ -96,8 +96,9 @@ def test_normalised_and_consistent(key, name):
 def test_stratified_mixture_draws_its_shares(key):
     """`Mixture(..., stratified=True)`: n w_k points from component k (largest remainders),
     each with its density under the mixture of the realised shares: an unbiased estimate."""
-    props = _proposals(key)
-    parts, weights = (props["gm"], props["grid"], Uniform(LO2, HI2)), (0.5, 0.3, 0.2)
+    gm = GaussianMixture(jax.random.fold_in(key, 5), LO2, HI2, components=3)
+    parts = (gm, _random_grid(jax.random.fold_in(key, 6), LO2, HI2, 16), Uniform(LO2, HI2))
+    weights = (0.5, 0.3, 0.2)
     mix = Mixture(parts, weights, stratified=True)
     assert mix.counts(1000) == (500, 300, 200) and mix.counts(7) == (4, 2, 1)  # 3.5, 2.1, 1.4
     x, p = sample(mix, key, 7)
@@ -105,7 +106,7 @@ def test_stratified_mixture_draws_its_shares(key):
     expected = sum(s * pdf(q, x) for s, q in zip(shares, parts))
     np.testing.assert_allclose(p, expected, rtol=1e-6)
     # The four points of the Gaussian mixture, turned by the random offset with the others.
-    gm_points = sample(props["gm"], jax.random.split(key, 4)[1], 4)[0]
+    gm_points = sample(gm, jax.random.split(key, 4)[1], 4)[0]
     assert sum(bool(jnp.any(jnp.all(x == g, axis=-1))) for g in gm_points) == 4
     # Unbiased for the integral of a peaked f over many keys (within 5 standard errors).
     f = lambda x: jnp.exp(-20.0 * jnp.sum((x - jnp.array([0.3, 0.0])) ** 2, axis=-1))  # noqa: E731
