@@ -37,8 +37,8 @@ The candidates:
   density $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed with
   the grid itself at `DEFENSIVE_SHARE` (defensive importance sampling,
   Hesterberg 1995), measured on up to `MIXTURE_PILOT_POINTS` points, each part
-  drawing its share of them (`Mixture(..., stratified=True)`: no point drawn
-  from both parts and then chosen between them).
+  drawing its share of them (`Mixture(..., stratified=True)`: no point is drawn
+  twice, once by each part, and then chosen between them).
   A grid is a product of axis densities: a peak along a diagonal, or several
   peaks, make it put mass on every combination of the axes' bins, which a
   mixture of Gaussians does not (measured, variance per evaluation against the
