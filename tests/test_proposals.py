@@ -309,6 +309,27 @@ def test_grid_edges_argument():
     np.testing.assert_allclose(g.pdf(jnp.array([0.05, 0.3, 0.9])), [1 / 0.3, 1 / 1.2, 1 / 1.5])
 
 
+
+@pytest.mark.parametrize("bins", [1, 2, 3, 7, 64, 100, 256])
+def test_grid_bin_index_is_the_last_edge_at_or_below(bins):
+    # The branchless binary search against `searchsorted` on the unit edges, for any number of
+    # bins (powers of two and not), on uneven edges, at the edges themselves, between them
+    # and outside the box (clipped to the first and last bin).
+    d = 3
+    lo, hi = jnp.array([-1.0, 0.0, 2.0]), jnp.array([2.0, 1.0, 2.5])
+    logits = 2 * jax.random.normal(jax.random.key(bins), (d, bins))
+    g = eqx.tree_at(lambda q: q.logits, Grid(lo, hi, bins=bins), logits)
+    e = g.edges.T
+    x = jnp.concatenate([
+        lo + (hi - lo) * jax.random.uniform(jax.random.key(0), (500, d), minval=-0.2, maxval=1.2),
+        e, (e[:-1] + e[1:]) / 2,
+    ])
+    _, unit = g._unit_edges()
+    t = (x - lo) / (hi - lo)
+    expected = jax.vmap(lambda ej, tj: jnp.searchsorted(ej, tj, side="right") - 1, (0, 1), 1)(unit, t)
+    index = eqx.filter_jit(lambda g, x: g.bin_index(x))(g, x)
+    np.testing.assert_array_equal(index, np.clip(expected, 0, bins - 1))
+
 def test_gm_from_weighted_samples(key):
     """Weighted EM on uniform samples weighted by f finds f's two separated peaks."""
     centres = jnp.array([[0.25, 0.7], [0.75, 0.3]])

@@ -118,14 +118,32 @@ class Grid(AbstractUnitMap):
         return x, log_p, i
 
     def bin_index(self, x: jax.Array) -> jax.Array:
-        """Per-axis bin index of points `(m, d)` -> `(m, d)` ints."""
+        r"""Per-axis bin index of points `(m, d)` -> `(m, d)` ints: the last edge at or below
+        each coordinate, clipped to the bins.
+
+        A branchless binary search, all axes at once: $\lceil\log_2(N+1)\rceil$ steps,
+        each one scalar gather from the flattened edges per coordinate. On a CPU, 8-D, 256
+        bins, `log_pdf` takes ~65 ns a point, against ~290 with `jnp.searchsorted` per
+        axis, which was most of the time of auto's defensive mixture.
+        """
         _, e = self._unit_edges()
+        # Materialised once: fused into the gathers, the softmax would be recomputed per step.
+        flat_edges = jax.lax.optimization_barrier(jnp.reshape(e, (-1,)))
         lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
         t = (x - lo) / (hi - lo)
-        idx = jax.vmap(
-            lambda ej, tj: jnp.searchsorted(ej, tj, side="right") - 1, in_axes=(0, 1), out_axes=1
-        )(e, t)
-        return jnp.clip(idx, 0, self.bins - 1)
+        last = self.bins  # edges 0..N per axis
+        row = (last + 1) * jnp.arange(self.dim, dtype=jnp.int32)
+        steps = last.bit_length()  # probes 2^(steps-1), ..., 2, 1 from the left edge
+
+        def probe(k, index):
+            step = jnp.left_shift(jnp.int32(1), steps - 1 - k)
+            at = jnp.minimum(index + step, last)
+            return jnp.where(flat_edges.at[at + row].get(mode="promise_in_bounds") <= t, at, index)
+
+        # A loop, so the index is stored between steps: unrolled, XLA fused each step with
+        # the chain of earlier ones and recomputed it from their gathered edges (3x slower).
+        index = jax.lax.fori_loop(0, steps, probe, jnp.zeros(t.shape, jnp.int32))
+        return jnp.clip(index, 0, self.bins - 1)
 
     def log_pdf(self, x):
         xm, batch = _as_matrix(self, x)
