@@ -45,20 +45,21 @@ def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi, compon
     b2 = jnp.where(flip, -a, b)
     pa = ndtr(a2)
     pb = ndtr(b2)
-    if component is not None:
-        # Stacked and materialised once: gathered one by one, XLA fused `ndtr` into the
-        # gathers outside loops, computing it per point (a mixture's sample took 4x as long).
-        table = jnp.stack(jnp.broadcast_arrays(mu, sigma, a2, b2, pa, pb))
-        table = jax.lax.optimization_barrier(table)
-        flip = flip[component]
-        mu, sigma, a2, b2, pa, pb = (table[i][component] for i in range(6))
-    u2 = jnp.where(flip, 1 - u, u)
-    eps = jnp.finfo(jnp.result_type(u)).tiny
-    z = ndtri(jnp.clip(pa + u2 * (pb - pa), eps, 1 - jnp.finfo(jnp.result_type(u)).epsneg))
     # Far in the lower tail Phi underflows; there the truncated normal is an
     # exponential with rate |b| below b (Mills ratio), inverted in closed form.
     lam = jnp.maximum(-b2, 1.0)
     e_t = jnp.exp(-lam * (b2 - a2))
+    if component is not None:
+        # Stacked and materialised once: gathered one by one, XLA fused `ndtr` (and the
+        # tail's exponential) into the gathers outside loops, computing them per point (a
+        # mixture's sample took 4x as long).
+        table = jnp.stack(jnp.broadcast_arrays(mu, sigma, a2, b2, pa, pb, lam, e_t))
+        table = jax.lax.optimization_barrier(table)
+        flip = flip[component]
+        mu, sigma, a2, b2, pa, pb, lam, e_t = (table[i][component] for i in range(8))
+    u2 = jnp.where(flip, 1 - u, u)
+    eps = jnp.finfo(jnp.result_type(u)).tiny
+    z = ndtri(jnp.clip(pa + u2 * (pb - pa), eps, 1 - jnp.finfo(jnp.result_type(u)).epsneg))
     t = -jnp.log(u2 * (1 - e_t) + e_t) / lam
     z = jnp.where(b2 < -30.0, b2 - t, z)
     z = jnp.clip(z, a2, b2)
