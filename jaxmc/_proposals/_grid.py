@@ -142,7 +142,8 @@ class Grid(AbstractUnitMap):
 
         # A loop, so the index is stored between steps: unrolled, XLA fused each step with
         # the chain of earlier ones and recomputed it from their gathered edges (3x slower).
-        index = jax.lax.fori_loop(0, steps, probe, jnp.zeros(t.shape, jnp.int32))
+        # (`zeros_like`: the carry keeps `t`'s type, varying over a `shard_map`'s axes.)
+        index = jax.lax.fori_loop(0, steps, probe, jnp.zeros_like(t, dtype=jnp.int32))
         return jnp.clip(index, 0, self.bins - 1)
 
     def log_pdf(self, x):
