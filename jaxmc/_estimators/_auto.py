@@ -119,10 +119,11 @@ SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full t
 # of QMC's values, see `_screen`). Measured after 3 rounds, against QMC's projected cost,
 # 4 keys of every `auto` benchmark case that was no clear win, at 1e5 and 1e6: where the
 # grid or its mixture then won with QMC's values not heavy-tailed, 0.6-1.5x (two 4-D
-# Gaussians; the 10-D ball's QMC saw nothing); where QMC won, 0.9-740x, 3-17x on 15 of
+# Gaussians; the 10-D ball's QMC saw nothing); where QMC won, 0.9-740x, 3-17x on 16 of
 # those 41 runs (camel 4-D, annulus, oblique resonances, 3-D ball, half-space), which
-# trained the grid and fitted a mixture at 20x: at 3x their calls took 1.3-2x less time at
-# 1e5 (estimates unchanged or from larger nets). Before the power-law exemption, the 4-D
+# trained the grid and fitted a mixture at 20x. At 3x, over 10 keys at 1e5, camel 4-D, the
+# 12-D resonance and the half-space took 1.7-2x less time, the 4-D resonance 1.2x (the
+# estimates unchanged, or from larger nets). Before the power-law exemption, the 4-D
 # corner singularity (11-20x young, 0.01-2.4x trained) and i-flow's 8-D Gaussian (a young
 # grid 80 per evaluation against QMC's 18, then 0.35) kept this at 20; both are exempt. The
 # grid's fall from its first round to its third said nothing of the rest (extrapolated, it
