@@ -309,7 +309,6 @@ def test_grid_edges_argument():
     np.testing.assert_allclose(g.pdf(jnp.array([0.05, 0.3, 0.9])), [1 / 0.3, 1 / 1.2, 1 / 1.5])
 
 
-
 @pytest.mark.parametrize("bins", [1, 2, 3, 7, 64, 100, 256])
 def test_grid_bin_index_is_the_last_edge_at_or_below(bins):
     # The branchless binary search against `searchsorted` on the unit edges, for any number of
@@ -329,6 +328,7 @@ def test_grid_bin_index_is_the_last_edge_at_or_below(bins):
     expected = jax.vmap(lambda ej, tj: jnp.searchsorted(ej, tj, side="right") - 1, (0, 1), 1)(unit, t)
     index = eqx.filter_jit(lambda g, x: g.bin_index(x))(g, x)
     np.testing.assert_array_equal(index, np.clip(expected, 0, bins - 1))
+
 
 def test_gm_from_weighted_samples(key):
     """Weighted EM on uniform samples weighted by f finds f's two separated peaks."""

