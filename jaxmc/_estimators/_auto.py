@@ -61,11 +61,13 @@ training and the stratified allocation make a VEGAS+ evaluation of a cheap
 integrand 4-7x dearer than a Sobol' point on a CPU (0.17 s against 0.04 s per
 $10^6$ in 4-D, steady state), and about as dear for an integrand that costs
 more than the map; 3 sits between. A draw from the mixture inverts truncated
-normal CDFs and evaluates both its parts' densities at every point: 20-40x a
-Sobol' point for a cheap integrand (0.3-1 s per $10^6$ in 2-16 D), 4-8x a VEGAS+
-point; 12 sits nearer the cheap end, so that the mixture takes over on the
-large gains (100-1000x on a correlated posterior) and not on close calls, where
-its stream would run slower. The pilot's evaluations count in the
+normal CDFs and evaluates both its parts' densities at every point: 0.17-0.74 s
+per $10^6$ in 2-16 D (float64, 8 components, a 256-bin grid), and a whole
+`"auto"` call at $10^6$ that streamed from it took 1.7-2.3x as long as
+`method="adaptive"` on vegas's 4-D and i-flow's 8-D Gaussians (it was 3-5x before
+the grid's density and the truncated normal's table were sped up; 12 was set
+then). 12 keeps the mixture for the large gains (100-1000x on a correlated
+posterior), not close calls. The pilot's evaluations count in the
 result's `n` but not in its mean: the streamed estimate uses fresh randomness,
 independent of the choice, so it stays unbiased.
 """
