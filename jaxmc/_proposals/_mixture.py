@@ -57,10 +57,10 @@ class Mixture(AbstractProposal):
                     f"{jnp.shape(proposals[0].lo)}."
                 )
         k = len(proposals)
-        # (Numbers given stay concrete here even under jit, where jnp makes tracers of them.)
-        given = np.full(k, 1.0 / k) if weights is None else weights
         if weights is None:
-            weights = jnp.full((k,), 1.0 / k, jnp.result_type(proposals[0].lo))
+            weights = np.full(k, 1.0 / k)
+        # (Numbers given stay concrete here even under jit, where jnp makes tracers of them.)
+        given = weights
         weights = jnp.asarray(weights, jnp.result_type(proposals[0].lo))
         if weights.shape != (k,):
             raise ValueError(f"`weights` must have shape ({k},), got {weights.shape}.")
