@@ -223,6 +223,53 @@ def test_auto_seeds_a_mixture_on_a_correlated_posterior():
     assert chosen.count("mixture") >= 3, chosen
 
 
+def test_auto_refits_a_winning_mixture_to_its_own_points():
+    # Population Monte Carlo: the mixture seeded from the grid's points is refitted to its
+    # own. i-flow's 16-D camel at 1e5 (keys on which the mixture wins): relative variance
+    # per evaluation 0.67 -> 0.12, 0.49 -> 0.10, 0.40 -> 0.12 (an 8-D camel gained 2-2.8x).
+    from jaxmc._estimators._adaptive import adaptive_block, training_rounds
+    from jaxmc._estimators._auto import run_pilot, split_keys
+    from jaxmc._estimators._seeded_mixture import adaptation_points, adapted_mixture
+
+    d, alpha, budget = 16, 0.2, 100_000
+    lo, hi = box(d)
+    norm = 0.5 / (alpha * np.sqrt(np.pi)) ** d
+
+    def camel(x):
+        return norm * sum(jnp.exp(-jnp.sum((x - c) ** 2) / alpha**2) for c in (1 / 3, 2 / 3))
+
+    def relative_variance(mixture):
+        x, p = mixture.sample(jax.random.key(50), 1 << 16)
+        y = jax.vmap(camel)(x) / p
+        return float(jnp.var(y) / jnp.mean(y) ** 2)
+
+    block = adaptive_block(budget)
+    gains = []
+    for seed in (0, 1, 3):
+        key, pilot_keys = split_keys(jax.random.key(seed))
+        pilot, _, (seeded, draws), rest = run_pilot(pilot_keys, camel, lo, hi, budget, False,
+                                                    training_rounds(budget, block), block)
+        assert pilot.candidates[int(pilot.choice)] == "mixture", seed
+        adapted = adapted_mixture(key, seeded, draws, f=camel, size=adaptation_points(rest),
+                                  batched=False)
+        gains.append(relative_variance(seeded) / relative_variance(adapted))
+    assert min(gains) > 2.5, gains
+
+
+def test_a_mixture_refitted_to_zeros_stays_as_it_was():
+    from jaxmc._estimators._seeded_mixture import _refit
+
+    lo, hi = box(2)
+    grid = jaxmc.proposals.Grid(lo, hi, bins=8)
+    gm = jaxmc.proposals.GaussianMixture(jax.random.key(0), lo, hi, components=8)
+    mixture = jaxmc.proposals.Mixture((gm, grid), (0.9, 0.1), stratified=True)
+    x, _ = mixture.sample(jax.random.key(1), 512)
+    same = _refit(mixture, x, jnp.zeros(512))
+    moved = _refit(mixture, x, jnp.exp(-jnp.sum((x - 0.3) ** 2, axis=-1) / 0.01))
+    assert np.array_equal(same.proposals[0].means, gm.means)
+    assert not np.allclose(moved.proposals[0].means, gm.means)
+
+
 @pytest.mark.parametrize(
     "f, exact, taken",
     [(cos_product, np.sin(1.0) ** 2, ("qmc",)), (peak(2, s=0.03), 1.0, ("adaptive", "mixture"))],

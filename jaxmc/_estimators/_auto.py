@@ -33,9 +33,9 @@ The candidates:
   as `method="adaptive"` does after training (refining rounds, then with a
   tolerance a frozen stream); if QMC wins, the training was the price of knowing.
 - `"mixture"`: a Gaussian mixture seeded from the trained grid's last round
-  (`GaussianMixture.from_samples` on the weights $|f|\,w/q$: EM towards the
-  density $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed with
-  the grid itself at `DEFENSIVE_SHARE` (defensive importance sampling,
+  (`_seeded_mixture`: `GaussianMixture.from_samples` on the weights $|f|\,w/q$, EM
+  towards the density $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed
+  with the grid itself at `DEFENSIVE_SHARE` (defensive importance sampling,
   Hesterberg 1995), measured on up to `MIXTURE_PILOT_POINTS` points, each part
   drawing its share of them (`Mixture(..., stratified=True)`: no point is drawn
   twice, once by each part, and then chosen between them).
@@ -52,8 +52,11 @@ The candidates:
   only if it fits well, relative variance per evaluation below
   `MIXTURE_MAX_VARIANCE`: the grid's figure is its last training round's, and
   the grid goes on adapting (on the 10-D ball it measured 200-2000 and then
-  ran at ~4) while the mixture stays as fitted. If it wins, the rest of the
-  budget streams from it (`method="importance"` blocks of `_stream`).
+  ran at ~4). If the mixture wins, it adapts too, twice: refitted to its pilot's
+  points, then to a tenth of the rest of the budget drawn from that refit
+  (`adapted_mixture`: population Monte Carlo; 6-26x lower variance on the
+  posterior, the 16-D camel and the 10-D ball). What is left streams from it
+  (`method="importance"` blocks of `_stream`).
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
 readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
@@ -81,7 +84,7 @@ from .._checks import is_concrete
 from .._diagnostics import bounded_variance, tail_of
 from .._integrand import evaluate, ratio
 from ..fit import Integrand, VegasPlus, run_adaptation
-from ..proposals import GaussianMixture, Grid, Mixture
+from ..proposals import Grid
 from ._adaptive import grid_bins
 from ._pilot_nets import (
     EARLY_MARGIN,
@@ -93,22 +96,13 @@ from ._pilot_nets import (
     pilot_qmc_points,
     relative_variance,
 )
+from ._seeded_mixture import seeded_mixture
 from ._stream import QMC_REPLICAS, final_net
 
 
 CANDIDATES = ("qmc", "adaptive", "mixture")
 # Time per evaluation, relative to a Sobol' point.
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "mixture": 12.0}
-MIXTURE_COMPONENTS = 8  # Gaussians in the mixture seeded from the grid
-DEFENSIVE_SHARE = 0.1  # the trained grid's share of the mixture
-# EM iterations seeding the mixture. 20 fitted as well as 50 (4 keys each of vegas's 4-D
-# Gaussian, i-flow's camels, the 5-D posterior), and 10 as well as 20: the mixture's
-# variance per evaluation, on 8x the pilot's points, 6 keys each of those, i-flow's 8-D
-# Gaussian and two 4-D Gaussians (and the 10-D ball at 1e6), had geometric means within
-# 10% at 1e5 and 1e6; 5 left a posterior key unfitted. An EM step costs ~0.12 ms on
-# 2048 points in 4-D, ~0.24 ms on 4096 in 8-D (the exponentials of the responsibilities).
-MIXTURE_EM_ITERATIONS = 10
-MIXTURE_FIT_POINTS = 4096  # at most this many of the grid's points seed the mixture
 MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
 # The mixture is a candidate only below this relative variance per evaluation, where
 # its effective sample size n / (1 + v) is above n / 10 (`diagnostics.HEAVY_TAIL_ESS_SHARE`).
@@ -226,28 +220,10 @@ def _grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
     return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0), state, samples
 
 
-def seeded_mixture(grid: Grid, samples) -> Mixture:
-    r"""The Gaussian mixture fitted to a grid's round of `samples` (weights $|f|\,w/q$),
-    mixed with the grid at `DEFENSIVE_SHARE`. At most `MIXTURE_FIT_POINTS` of them, a
-    stride apart: a VEGAS+ round lies hypercube by hypercube, so the stride keeps
-    every part of the cube, and EM's time grows with the points."""
-    stride = max(1, samples.weights.shape[0] // MIXTURE_FIT_POINTS)
-    samples = jax.tree.map(lambda a: a[::stride], samples)
-    fx = jnp.reshape(samples.fx, (samples.fx.shape[0], -1))
-    size = jnp.sqrt(jnp.sum(jnp.where(jnp.isfinite(fx), fx, 0) ** 2, axis=-1))
-    weights = size * samples.weights * jnp.exp(-samples.log_q)
-    weights = jnp.where(jnp.isfinite(weights), weights, 0)
-    # All zeros (a grid that saw nothing): even weights keep EM finite; the pilot is blind then.
-    weights = jnp.where(jnp.sum(weights) > 0, weights, 1.0)
-    gm = GaussianMixture.from_samples(samples.x, weights / jnp.sum(weights), grid.lo, grid.hi,
-                                      components=MIXTURE_COMPONENTS, iterations=MIXTURE_EM_ITERATIONS)
-    return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE), stratified=True)
-
-
 @eqx.filter_jit
 def _mixture_pilot(key, grid, samples, *, f, size, batched):
     """Fit `seeded_mixture` and measure it on `size` points: `(relative variance
-    per evaluation, blind, the mixture)`."""
+    per evaluation, blind, the mixture, its points and values)`."""
     mixture = seeded_mixture(grid, samples)
     x, p = mixture.sample(key, size)
     y, _ = ratio(evaluate(f, x, batched), p)
@@ -260,7 +236,7 @@ def _mixture_pilot(key, grid, samples, *, f, size, batched):
     variance = jnp.where(variance > MIXTURE_MAX_VARIANCE, jnp.inf, variance)
     # Blind only if it saw nothing: a few large values are the defensive share's
     # (bounded, see the module's docstring), not a missed peak's.
-    return variance, jnp.all(mean == 0), mixture
+    return variance, jnp.all(mean == 0), mixture, (x, y)
 
 
 def _choose(qmc: QMCFigures, variance, blind):
@@ -327,8 +303,8 @@ def split_keys(key):
 
 def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=False):
     """Run the candidates' pilots (`keys`: the pilot's four, `split_keys`); returns
-    `(Pilot, trained VEGAS+ state or None, seeded mixture or None, evaluations left for
-    the winner's stream)`.
+    `(Pilot, trained VEGAS+ state or None, (seeded mixture, its pilot's points and values)
+    or None, evaluations left for the winner's stream)`.
 
     The grid trains in two stages, `SCREEN_ROUNDS` rounds and then the rest of the
     `rounds` rounds of `round_size` that `method="adaptive"` trains for: a young
@@ -395,10 +371,11 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     if mixture_n == 0 or (is_concrete(beaten) and bool(beaten)):
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, rounds * round_size))
         return pilot, state, None, trained_rest
-    v_mixture, mixture_blind, mixture = _mixture_pilot(
+    v_mixture, mixture_blind, mixture, draws = _mixture_pilot(
         key_mixture, state.grid, samples, f=f, size=mixture_n, batched=batched
     )
     variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, v_mixture, mixture_blind,
                                            screened, decided)
     evaluations = (qmc_n, rounds * round_size, mixture_n)
-    return Pilot(CANDIDATES, variance, cost, choice, evaluations), state, mixture, trained_rest
+    pilot = Pilot(CANDIDATES, variance, cost, choice, evaluations)
+    return pilot, state, (mixture, draws), trained_rest

@@ -1,14 +1,14 @@
 r"""`integrate`: the driver users reach for first — tolerances, budgets, and the choice of method.
 
 The streaming itself (blocks, chunks, devices, the tolerance loop) is
-`_stream.stream`; the pilot of `method="auto"` is `_auto.run_pilot`. This
-module checks the arguments, trains what a method needs before streaming (the
-VEGAS+ grid of `"adaptive"`), and labels the result with the method used.
+`_stream.stream`; the pilot of `method="auto"` is `_auto.run_pilot`; what a
+method does before its stream (train the VEGAS+ grid of `"adaptive"`, refit
+auto's mixture) is `_runner.Runner`. This module checks the arguments, runs the
+method and labels the result with the method used.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -32,21 +32,11 @@ from .._checks import (
 )
 from .._diagnostics import warn_if_unreliable
 from .._integrand import bind
-from .._progress import progress_bar
 from .._stats import Estimate, ReliabilityWarning, estimate_fields, rounding_floor
 from ..proposals import Grid
-from ._adaptive import (
-    MIN_STREAM_BLOCKS,
-    adaptive_block,
-    frozen_vegas_plus,
-    grid_bins,
-    refine,
-    refining_rounds,
-    train_vegas_plus,
-    training_rounds,
-)
+from ._adaptive import adaptive_block, grid_bins, training_rounds
 from ._auto import Pilot, run_pilot, split_keys
-from ._stream import plan, stream_on_mesh
+from ._runner import Runner
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
@@ -116,7 +106,8 @@ def integrate(
           smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
           it trains (at most a quarter) and, on a fixed budget, a mixture of
           Gaussians seeded from the trained grid (`est.method` `"mixture"`,
-          streamed as importance sampling) — and spends the rest on
+          refitted to its own points when it wins, then streamed as importance
+          sampling) — and spends the rest on
           the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
           for the rules); `est.method` names the winner and `est.pilot` keeps
           the figures. The pilot's evaluations count in `n` but not in the
@@ -221,7 +212,7 @@ def integrate(
     mesh = _blocks_mesh(mesh)
     tolerant = rtol is not None or atol is not None
     # (An absent tolerance is a NumPy zero: an eager jnp constant costs ~30 us a call.)
-    run = _Run(f, lo, hi, chunk, mesh, tolerant, progress, batched,
+    run = Runner(f, lo, hi, chunk, mesh, tolerant, progress, batched,
                *(np.zeros((), lo.dtype) if tol is None else jnp.asarray(tol, lo.dtype)
                  for tol in (rtol, atol)))
     pilot, spent = None, 0
@@ -239,8 +230,7 @@ def integrate(
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
             # Importance sampling from the mixture the pilot seeded from the grid.
-            lambda: run.block_method("importance", key, rest, spent, frozen=mixture,
-                                     chunk=mixture_chunk),
+            lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -281,65 +271,6 @@ def integrate(
 
 # Below this budget "auto" skips the pilot: a few thousand points cannot be shared.
 _AUTO_MIN_BUDGET = 1 << 14
-
-
-class _Run:
-    """One call's fixed settings, and a runner per method returning an `Estimate`."""
-
-    def __init__(self, f, lo, hi, chunk, mesh, tolerant, progress, batched, rtol, atol):
-        self.f, self.lo, self.hi, self.chunk, self.mesh = f, lo, hi, chunk, mesh
-        self.tolerant, self.progress, self.batched = tolerant, progress, batched
-        self.rtol, self.atol = rtol, atol
-        self.d = 1 if lo.ndim == 0 else lo.shape[0]
-
-    def _stream(self, key, frozen, run_plan, done=0):
-        """Stream `run_plan`, `done` evaluations (a pilot's, a training's) already spent."""
-        with progress_bar(self.progress, done + run_plan.budget, done):
-            return stream_on_mesh(
-                key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
-                mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,
-                batched=self.batched,
-            )
-
-    def block_method(self, method, key, budget, done=0, frozen=None, chunk=None):
-        run_plan = plan(method, budget, chunk or self.chunk, self.mesh.size, self.d,
-                        tolerant=self.tolerant)
-        return self._stream(key, frozen, run_plan, done)
-
-    def qmc(self, key, budget, done=0):
-        return self.block_method("qmc", key, budget, done)
-
-    def adaptive(self, key, budget, grid):
-        """Train a VEGAS+ grid from `grid`, then refine and stream on it (`_adaptive`)."""
-        block = adaptive_block(budget)
-        rounds = training_rounds(budget, block)
-        train_key, key = jax.random.split(key)
-        state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
-        est = self.trained_grid(key, budget - rounds * block, state, block, rounds * block)
-        return dataclasses.replace(est, n=est.n + rounds * block)
-
-    def trained_grid(self, key, budget, state, block, done=0):
-        """Refining rounds from a trained VEGAS+ `state`; with a tolerance they did not
-        meet, a frozen stream after them (`_adaptive`)."""
-        refine_key, key = jax.random.split(key)
-        rounds = refining_rounds(budget, block, self.tolerant)
-        with progress_bar(self.progress, done + rounds * block, done):
-            refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
-                                    batched=self.batched, rounds=rounds, tolerant=self.tolerant,
-                                    progress=self.progress)
-        rest = budget - rounds * block
-        if not self.tolerant or rest < MIN_STREAM_BLOCKS * block:
-            return refined
-
-        def streamed():
-            run_plan = plan("adaptive", rest, self.chunk, self.mesh.size, self.d, block)
-            est = self._stream(key, frozen_vegas_plus(state, block), run_plan, done + rounds * block)
-            return dataclasses.replace(est, n=est.n + refined.n)
-
-        met = jnp.all(refined.stderr <= jnp.maximum(self.atol, self.rtol * jnp.abs(refined.mean)))
-        if is_concrete(met):
-            return refined if bool(met) else streamed()
-        return jax.lax.cond(met, lambda: refined, streamed)
 
 
 def _blocks_mesh(mesh: Mesh | None) -> Mesh | AbstractMesh:

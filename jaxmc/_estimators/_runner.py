@@ -1,0 +1,93 @@
+"""`integrate`'s runners: one call's fixed settings, and a method's stream from them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from .._checks import is_concrete
+from .._progress import progress_bar
+from ._adaptive import (
+    MIN_STREAM_BLOCKS,
+    adaptive_block,
+    frozen_vegas_plus,
+    refine,
+    refining_rounds,
+    train_vegas_plus,
+    training_rounds,
+)
+from ._seeded_mixture import adaptation_points, adapted_mixture
+from ._stream import plan, stream_on_mesh
+
+
+class Runner:
+    """One call's fixed settings, and a runner per method returning an `Estimate`."""
+
+    def __init__(self, f, lo, hi, chunk, mesh, tolerant, progress, batched, rtol, atol):
+        self.f, self.lo, self.hi, self.chunk, self.mesh = f, lo, hi, chunk, mesh
+        self.tolerant, self.progress, self.batched = tolerant, progress, batched
+        self.rtol, self.atol = rtol, atol
+        self.d = 1 if lo.ndim == 0 else lo.shape[0]
+
+    def _stream(self, key, frozen, run_plan, done=0):
+        """Stream `run_plan`, `done` evaluations (a pilot's, a training's) already spent."""
+        with progress_bar(self.progress, done + run_plan.budget, done):
+            return stream_on_mesh(
+                key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
+                mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,
+                batched=self.batched,
+            )
+
+    def block_method(self, method, key, budget, done=0, frozen=None, chunk=None):
+        run_plan = plan(method, budget, chunk or self.chunk, self.mesh.size, self.d,
+                        tolerant=self.tolerant)
+        return self._stream(key, frozen, run_plan, done)
+
+    def qmc(self, key, budget, done=0):
+        return self.block_method("qmc", key, budget, done)
+
+    def mixture(self, key, budget, done, mixture, draws, chunk):
+        """Refit auto's winning `mixture` to its pilot's `draws` and to points of its own
+        (`adapted_mixture`: they count in `n`, not in the mean), then stream from it."""
+        adapt_key, key = jax.random.split(key)
+        size = adaptation_points(budget)
+        if size:
+            mixture = adapted_mixture(adapt_key, mixture, draws, f=self.f, size=size,
+                                      batched=self.batched)
+        est = self.block_method("importance", key, budget - size, done + size, frozen=mixture,
+                                chunk=chunk)
+        return dataclasses.replace(est, n=est.n + size)
+
+    def adaptive(self, key, budget, grid):
+        """Train a VEGAS+ grid from `grid`, then refine and stream on it (`_adaptive`)."""
+        block = adaptive_block(budget)
+        rounds = training_rounds(budget, block)
+        train_key, key = jax.random.split(key)
+        state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
+        est = self.trained_grid(key, budget - rounds * block, state, block, rounds * block)
+        return dataclasses.replace(est, n=est.n + rounds * block)
+
+    def trained_grid(self, key, budget, state, block, done=0):
+        """Refining rounds from a trained VEGAS+ `state`; with a tolerance they did not
+        meet, a frozen stream after them (`_adaptive`)."""
+        refine_key, key = jax.random.split(key)
+        rounds = refining_rounds(budget, block, self.tolerant)
+        with progress_bar(self.progress, done + rounds * block, done):
+            refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
+                                    batched=self.batched, rounds=rounds, tolerant=self.tolerant,
+                                    progress=self.progress)
+        rest = budget - rounds * block
+        if not self.tolerant or rest < MIN_STREAM_BLOCKS * block:
+            return refined
+
+        def streamed():
+            run_plan = plan("adaptive", rest, self.chunk, self.mesh.size, self.d, block)
+            est = self._stream(key, frozen_vegas_plus(state, block), run_plan, done + rounds * block)
+            return dataclasses.replace(est, n=est.n + refined.n)
+
+        met = jnp.all(refined.stderr <= jnp.maximum(self.atol, self.rtol * jnp.abs(refined.mean)))
+        if is_concrete(met):
+            return refined if bool(met) else streamed()
+        return jax.lax.cond(met, lambda: refined, streamed)
