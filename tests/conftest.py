@@ -37,6 +37,16 @@ jax.config.update("jax_enable_x64", True)
 # many places). Warnings are errors: see `filterwarnings` in pyproject.toml.
 
 
+# The longest tests (a notebook's kernel, two processes) start first: the workers of `-n 2`
+# take tests in collection order, and a minute-long test taken last leaves the other idle.
+# Whole files move, so module-scoped fixtures still run once.
+_FIRST = ("test_notebooks.py", "test_multiprocess.py")
+
+
+def pytest_collection_modifyitems(items):
+    items.sort(key=lambda item: item.path.name not in _FIRST)  # (a stable sort)
+
+
 @pytest.fixture
 def key():
     """Deterministic key (seed 20261122); tests that need several split it."""

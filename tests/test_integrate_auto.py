@@ -99,13 +99,18 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     from jaxmc._estimators._pilot_nets import clear_win_gain, measure_nets, net_values
 
     lo, hi = box(3)
-    key, f = jax.random.key(3), peak(3, s=0.1)
+    # (A narrow peak: no clear win, early or on the whole nets.)
+    key, f = jax.random.key(3), peak(3, s=0.03)
     settings = dict(f=f, per_replica=512, batched=False)
     early, early_win, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
     reused, _ = _qmc_pilot(key, lo, hi, early, early_win, growth=8.0, **settings)
     whole = measure_nets(net_values(key, lo, hi, f, False, 0, 4, 7), 8.0, clear_win_gain(512))
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(reused)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10)
+    # Under jit, where an early clear win cannot end the pilot, the verdict stands.
+    assert not bool(early_win) and not bool(reused.clear_win)
+    stands, _ = _qmc_pilot(key, lo, hi, early, jnp.asarray(True), growth=8.0, **settings)
+    assert bool(stands.clear_win)
 
 
 def test_auto_credits_qmc_with_plain_mc_under_a_power_law_tail():
@@ -238,10 +243,11 @@ def test_auto_refits_a_winning_mixture_to_its_own_points():
     def camel(x):
         return norm * sum(jnp.exp(-jnp.sum((x - c) ** 2) / alpha**2) for c in (1 / 3, 2 / 3))
 
+    @jax.jit
     def relative_variance(mixture):
         x, p = mixture.sample(jax.random.key(50), 1 << 16)
         y = jax.vmap(camel)(x) / p
-        return float(jnp.var(y) / jnp.mean(y) ** 2)
+        return jnp.var(y) / jnp.mean(y) ** 2
 
     block = adaptive_block(budget)
     gains = []
@@ -252,7 +258,7 @@ def test_auto_refits_a_winning_mixture_to_its_own_points():
         assert pilot.candidates[int(pilot.choice)] == "mixture", seed
         adapted = adapted_mixture(key, seeded, draws, f=camel, size=adaptation_points(rest),
                                   batched=False)
-        gains.append(relative_variance(seeded) / relative_variance(adapted))
+        gains.append(float(relative_variance(seeded) / relative_variance(adapted)))
     assert min(gains) > 2.5, gains
 
 
@@ -263,9 +269,14 @@ def test_a_mixture_refitted_to_zeros_stays_as_it_was():
     grid = jaxmc.proposals.Grid(lo, hi, bins=8)
     gm = jaxmc.proposals.GaussianMixture(jax.random.key(0), lo, hi, components=8)
     mixture = jaxmc.proposals.Mixture((gm, grid), (0.9, 0.1), stratified=True)
-    x, _ = mixture.sample(jax.random.key(1), 512)
-    same = _refit(mixture, x, jnp.zeros(512))
-    moved = _refit(mixture, x, jnp.exp(-jnp.sum((x - 0.3) ** 2, axis=-1) / 0.01))
+
+    @jax.jit  # (eagerly, the draw and EM's loops dispatch op by op)
+    def refits(mixture):
+        x, _ = mixture.sample(jax.random.key(1), 512)
+        peaked = jnp.exp(-jnp.sum((x - 0.3) ** 2, axis=-1) / 0.01)
+        return _refit(mixture, x, jnp.zeros(512)), _refit(mixture, x, peaked)
+
+    same, moved = refits(mixture)
     assert np.array_equal(same.proposals[0].means, gm.means)
     assert not np.allclose(moved.proposals[0].means, gm.means)
 
@@ -295,13 +306,9 @@ def test_auto_under_jit_matches_the_eager_choice():
     assert int(traced.pilot.choice) == int(eager.pilot.choice)
     np.testing.assert_allclose(traced.mean, eager.mean, rtol=1e-12)
     assert traced.n == eager.n
-    # A clear win on the first quarter of the nets ends an eager pilot; under jit the pilot
-    # runs on (the early verdict standing) and chooses QMC too.
-    lo, hi = box(4)
-    eager = jaxmc.integrate(jax.random.key(0), cos_product, lo, hi, n=100_000)
-    traced = jax.jit(lambda k: jaxmc.integrate(k, cos_product, lo, hi, n=100_000))(jax.random.key(0))
-    assert eager.pilot.evaluations == (1024,) and int(traced.pilot.choice) == 0
-    assert abs(float(traced.mean) - np.sin(1.0) ** 4) < 5 * float(traced.stderr)
+    # (A clear win on the first quarter of the nets ends an eager pilot; under jit the pilot
+    # runs on and the early verdict stands: `test_qmc_pilot_reuses_its_early_look_exactly`.
+    # The traced choice of QMC on a smooth integrand: `test_auto_pilot_never_biases_the_result`.)
 
 
 def test_qmc_keeps_its_rate():
