@@ -41,16 +41,16 @@ ADAPT_MAX_POINTS = 1 << 16
 ADAPT_FIT_POINTS = 1 << 14
 
 
-def fitted_mixture(grid: Grid, x, weights) -> tuple[Mixture, jax.Array]:
-    """A mixture of `MIXTURE_COMPONENTS` Gaussians fitted to points `x` of `weights`
-    (non-finite ones count as zero), mixed with `grid` at `DEFENSIVE_SHARE`; and whether
-    any weight was positive (if none, even weights keep EM finite and the fit says nothing)."""
+def _fitted_gaussians(grid: Grid, x, weights) -> tuple[GaussianMixture, jax.Array]:
+    """`MIXTURE_COMPONENTS` Gaussians fitted by EM to points `x` of `weights` (non-finite
+    ones count as zero) in `grid`'s box; and whether any weight was positive (if none,
+    even weights keep EM finite and the fit says nothing)."""
     weights = jnp.where(jnp.isfinite(weights), weights, 0)
     seen = jnp.sum(weights) > 0
     weights = jnp.where(seen, weights, 1.0)
     gm = GaussianMixture.from_samples(x, weights / jnp.sum(weights), grid.lo, grid.hi,
                                       components=MIXTURE_COMPONENTS, iterations=MIXTURE_EM_ITERATIONS)
-    return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE), stratified=True), seen
+    return gm, seen
 
 
 def _magnitude(values):
@@ -67,7 +67,8 @@ def seeded_mixture(grid: Grid, samples) -> Mixture:
     stride = max(1, samples.weights.shape[0] // MIXTURE_FIT_POINTS)
     samples = jax.tree.map(lambda a: a[::stride], samples)
     weights = _magnitude(samples.fx) * samples.weights * jnp.exp(-samples.log_q)
-    return fitted_mixture(grid, samples.x, weights)[0]
+    gm, _ = _fitted_gaussians(grid, samples.x, weights)
+    return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE), stratified=True)
 
 
 def adaptation_points(rest: int) -> int:
@@ -81,9 +82,8 @@ def _refit(mixture: Mixture, x, y) -> Mixture:
     """`mixture` refitted to its own draws `x` of values `y` (at most `ADAPT_FIT_POINTS` of
     them, a stride apart); unchanged if they were all zero."""
     stride = max(1, x.shape[0] // ADAPT_FIT_POINTS)
-    refitted, seen = fitted_mixture(mixture.proposals[1], x[::stride], _magnitude(y[::stride]))
-    gm = jax.tree.map(lambda new, old: jnp.where(seen, new, old),
-                      refitted.proposals[0], mixture.proposals[0])
+    gm, seen = _fitted_gaussians(mixture.proposals[1], x[::stride], _magnitude(y[::stride]))
+    gm = jax.tree.map(lambda new, old: jnp.where(seen, new, old), gm, mixture.proposals[0])
     return eqx.tree_at(lambda m: m.proposals[0], mixture, gm)
 
 
