@@ -76,7 +76,7 @@ def test_fitted_estimates_unbiased_and_covered(fitted_2d):
     exact = 1.0  # the peak's mass outside the box is ~1e-9
     keys = jax.random.split(jax.random.key(12), 6)
     for prop in (res.proposal, grid):
-        ests = jax.vmap(lambda k: jaxmc.importance(k, f, prop, 4000))(keys)
+        ests = jax.jit(jax.vmap(lambda k: jaxmc.importance(k, f, prop, 4000)))(keys)
         z = np.abs(np.asarray(ests.mean) - exact) / np.sqrt(np.asarray(ests.variance))
         assert np.all(z < 5), z
         # With 6 keys at ~95% coverage, at least 4 intervals cover.
