@@ -16,6 +16,7 @@ import numpy as np
 from scipy import stats
 
 import jaxmc
+from jaxmc._diagnostics import warn_if_unreliable
 
 
 # Subprocesses (notebook kernels, multi-device and multi-process runs) compile with
@@ -89,6 +90,17 @@ def assert_unbiased_and_honest(est, exact, *, honest="equal"):
     else:  # conservative: the reported variance is not below the empirical one
         assert np.all(ratio < 1 + tolerance), f"empirical/reported variance {ratio}"
     return ratio
+
+
+_compiled_importance = eqx.filter_jit(jaxmc.importance)
+
+
+def importance(key, f, proposal, n):
+    """`jaxmc.importance` as one compiled program (eagerly, its sampler dispatches op by op),
+    with the `ReliabilityWarning` it gives outside `jit` (the suite turns it into an error)."""
+    est = _compiled_importance(key, f, proposal, n)
+    warn_if_unreliable(est, "importance")
+    return est
 
 
 @eqx.filter_jit

@@ -20,7 +20,7 @@ from jaxmc.proposals import (
     Uniform,
 )
 
-from .helpers import box, peak, per_sample_variance
+from .helpers import box, importance, peak, per_sample_variance
 
 
 def _quad_2d(pdf, m=300):
@@ -238,7 +238,7 @@ def test_product_power_density_variance_to_zero():
     res = eqx.filter_jit(
         lambda k, p: fit(k, f, p, 2048, objective="chi2", defensive=0.0, max_steps=300)
     )(jax.random.key(17), prop)
-    est = jaxmc.importance(jax.random.key(18), f, res.proposal, 20_000)
+    est = importance(jax.random.key(18), f, res.proposal, 20_000)
     # Fresh samples: f/p is constant up to float64 rounding, so the estimate is exact.
     assert float(est.variance) * 20_000 < 1e-10 * v_uniform, est.variance
     assert abs(float(est.mean) - 1.0) < 1e-8, est.mean

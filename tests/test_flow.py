@@ -15,7 +15,7 @@ from jaxmc._fit._solvers import default_solver
 from jaxmc._proposals._flow import _rqs_forward, _rqs_inverse
 from jaxmc.proposals import Flow
 
-from .helpers import midpoint_grid
+from .helpers import importance, midpoint_grid
 
 
 LO2 = jnp.array([-1.0, 0.0])
@@ -274,8 +274,8 @@ def test_fit_camel_reduces_variance(key):
     assert losses[0] > 1.5 and losses[-20:].mean() < losses[0] - 1.0, (losses[0], losses[-20:])
 
     n = 2**16
-    est_flow = jaxmc.importance(jax.random.key(2), f, fitted, n)
-    est_unif = jaxmc.importance(jax.random.key(3), f, jaxmc.proposals.Uniform(lo, hi), n)
+    est_flow = importance(jax.random.key(2), f, fitted, n)
+    est_unif = importance(jax.random.key(3), f, jaxmc.proposals.Uniform(lo, hi), n)
     # The integral over the unit square is 1 up to ~1e-10 of Gaussian tails.
     for est in (est_flow, est_unif):
         assert abs(float(est.mean) - 1.0) < 4 * float(est.stderr)

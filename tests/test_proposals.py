@@ -24,6 +24,7 @@ LO2, HI2 = jnp.array([0.0, -1.0]), jnp.array([1.0, 2.0])
 sample = eqx.filter_jit(lambda q, key, n: q.sample(key, n))
 pdf = eqx.filter_jit(lambda q, x: q.pdf(x))
 pdf_log = eqx.filter_jit(lambda q, x: q.log_pdf(x))
+from_samples = eqx.filter_jit(GaussianMixture.from_samples)  # (its EM loops, eagerly, op by op)
 
 
 def _quad_2d(pdf, lo, hi, m=400):
@@ -270,9 +271,13 @@ def test_grid_refine_vegas_rule(key):
     # 1% defensive share, q = (2x + 0.01)/1.01 (CDF (x^2 + 0.01 x)/1.01). The smoothing of
     # the bin weights keeps the first interior edge about 0.031 below it (the same on every
     # key tried; the others are within 0.02); uniform edges would be 0.23 off.
+    @eqx.filter_jit  # (one compiled step for the ten; eagerly each dispatches op by op)
+    def step(g, k):
+        x, p = g.sample(k, 20_000)
+        return g.refine(x, (2 * x / p) ** 2, alpha=0.5)
+
     for i in range(10):
-        x, p = g2.sample(jax.random.fold_in(key, i), 20_000)
-        g2 = g2.refine(x, (2 * x / p) ** 2, alpha=0.5)
+        g2 = step(g2, jax.random.fold_in(key, i))
     share, levels = 0.01, np.linspace(0, 1, 9) * 1.01
     optimal = (-share + np.sqrt(share**2 + 4 * levels)) / 2
     np.testing.assert_allclose(g2.edges[0], optimal, atol=0.035)
@@ -340,7 +345,7 @@ def test_gm_from_weighted_samples(key):
         -jnp.sum((x - centres[1]) ** 2) / (2 * s * s)
     )
     x = jax.random.uniform(key, (20_000, 2))
-    gm = GaussianMixture.from_samples(x, jax.vmap(f)(x), jnp.zeros(2), jnp.ones(2), components=2)
+    gm = from_samples(x, jax.vmap(f)(x), jnp.zeros(2), jnp.ones(2), components=2)
     order = jnp.argsort(gm.means[:, 0])
     np.testing.assert_allclose(gm.means[order], centres, atol=0.01)
     np.testing.assert_allclose(jnp.exp(gm.log_scales[order]), s, rtol=0.1)
@@ -348,7 +353,7 @@ def test_gm_from_weighted_samples(key):
     # Zero weights (e.g. f underflowed) are never picked as starting means.
     w0 = jnp.zeros(100).at[50].set(1.0).at[7].set(0.5)
     pts = jax.random.uniform(key, (100, 2))
-    two = GaussianMixture.from_samples(pts, w0, jnp.zeros(2), jnp.ones(2), 2, iterations=0)
+    two = from_samples(pts, w0, jnp.zeros(2), jnp.ones(2), 2, iterations=0)
     np.testing.assert_allclose(jnp.sort(two.means[:, 0]), jnp.sort(pts[jnp.array([50, 7]), 0]))
     # Seeding does not depend on the box's scale: a light but separate cluster far away
     # (distance > 1) still gets a component.
@@ -357,18 +362,17 @@ def test_gm_from_weighted_samples(key):
     pts1 = jnp.concatenate([near, jnp.full((5,), 15.0)])
     w1 = jnp.concatenate([jnp.ones(50), jnp.full((5,), 0.5)])
     for scale in (1.0, 0.01):
-        seeded = GaussianMixture.from_samples(scale * pts1, w1, -20.0 * scale, 20.0 * scale, 2,
-                                              iterations=0)
+        seeded = from_samples(scale * pts1, w1, -20.0 * scale, 20.0 * scale, 2, iterations=0)
         assert float(jnp.max(seeded.means)) == pytest.approx(15.0 * scale), seeded.means
     # float32 far from the origin: the EM variance is computed from deviations.
     far = 1000.5 + 0.02 * jax.random.normal(kf, (2000, 2))
     lo32, hi32 = jnp.full(2, 1000.0, jnp.float32), jnp.full(2, 1001.0, jnp.float32)
-    g32 = GaussianMixture.from_samples(far.astype(jnp.float32), jnp.ones(2000, jnp.float32),
-                                       lo32, hi32, 1, prior=0.0, min_scale=1e-4)
+    g32 = from_samples(far.astype(jnp.float32), jnp.ones(2000, jnp.float32), lo32, hi32, 1,
+                       prior=0.0, min_scale=1e-4)
     np.testing.assert_allclose(jnp.exp(g32.log_scales), 0.02, rtol=0.1)
     # A spike of weight on one sample does not collapse a component below the floor.
     w = jnp.zeros(100).at[3].set(1.0)
-    spiky = GaussianMixture.from_samples(pts, w, jnp.zeros(2), jnp.ones(2), 2, min_scale=0.02)
+    spiky = from_samples(pts, w, jnp.zeros(2), jnp.ones(2), 2, min_scale=0.02)
     assert float(jnp.min(jnp.exp(spiky.log_scales))) >= 0.02 - 1e-12
     with pytest.raises(ValueError, match="weights"):
         GaussianMixture.from_samples(pts, jnp.ones(99), jnp.zeros(2), jnp.ones(2), 2)
