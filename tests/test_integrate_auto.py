@@ -232,44 +232,45 @@ def test_auto_seeds_a_mixture_on_a_correlated_posterior():
 
 def test_auto_refits_a_winning_mixture_to_its_own_points():
     # Population Monte Carlo: the mixture seeded from the grid's points is refitted to its
-    # own. i-flow's 16-D camel at 1e5 (keys on which the mixture wins): relative variance
-    # per evaluation 0.67 -> 0.12, 0.49 -> 0.10, 0.40 -> 0.12 (an 8-D camel gained 2-2.8x).
+    # own. The 10-D ball at 1e5: mean squared error per evaluation, relative to the volume,
+    # 340 -> 5.5, 13 -> 3.5, 100 -> 4.8 on these keys (3.7-35x on keys 0-5). Measured
+    # against the truth, not the points' own spread: a mixture that misses part of f (one
+    # of the 16-D camel's modes) has a small spread about a mean that is low.
     from jaxmc._estimators._adaptive import adaptive_block, training_rounds
     from jaxmc._estimators._auto import run_pilot, split_keys
     from jaxmc._estimators._seeded_mixture import adaptation_points, adapted_mixture
 
-    d, alpha, budget = 16, 0.2, 100_000
+    d, radius, budget = 10, 0.45, 100_000
     lo, hi = box(d)
-    norm = 0.5 / (alpha * np.sqrt(np.pi)) ** d
+    volume = np.pi ** (d / 2) / math.gamma(d / 2 + 1) * radius**d
 
-    def camel(x):
-        return norm * sum(jnp.exp(-jnp.sum((x - c) ** 2) / alpha**2) for c in (1 / 3, 2 / 3))
+    def ball(x):
+        return jnp.where(jnp.sum((x - 0.5) ** 2) < radius**2, 1.0, 0.0)
 
     @jax.jit
-    def relative_variance(mixture):
+    def relative_error(mixture):
         x, p = mixture.sample(jax.random.key(50), 1 << 16)
-        y = jax.vmap(camel)(x) / p
-        return jnp.var(y) / jnp.mean(y) ** 2
+        return jnp.mean((jax.vmap(ball)(x) / p - volume) ** 2) / volume**2
 
     block = adaptive_block(budget)
     gains = []
     for seed in (0, 1, 3):
         key, pilot_keys = split_keys(jax.random.key(seed))
-        pilot, _, (seeded, draws), rest = run_pilot(pilot_keys, camel, lo, hi, budget, False,
-                                                    training_rounds(budget, block), block)
-        assert pilot.candidates[int(pilot.choice)] == "mixture", seed
-        adapted = adapted_mixture(key, seeded, draws, f=camel, size=adaptation_points(rest),
+        _, _, (seeded, draws), rest = run_pilot(pilot_keys, ball, lo, hi, budget, False,
+                                                training_rounds(budget, block), block)
+        adapted = adapted_mixture(key, seeded, draws, f=ball, size=adaptation_points(rest),
                                   batched=False)
-        gains.append(float(relative_variance(seeded) / relative_variance(adapted)))
+        gains.append(float(relative_error(seeded) / relative_error(adapted)))
     assert min(gains) > 2.5, gains
 
 
 def test_a_mixture_refitted_to_zeros_stays_as_it_was():
-    from jaxmc._estimators._seeded_mixture import _refit
+    from jaxmc._estimators._seeded_mixture import MIXTURE_COMPONENTS, _refit
 
     lo, hi = box(2)
     grid = jaxmc.proposals.Grid(lo, hi, bins=8)
-    gm = jaxmc.proposals.GaussianMixture(jax.random.key(0), lo, hi, components=8)
+    # (As auto's: the fitted Gaussians and a wide one.)
+    gm = jaxmc.proposals.GaussianMixture(jax.random.key(0), lo, hi, components=MIXTURE_COMPONENTS + 1)
     mixture = jaxmc.proposals.Mixture((gm, grid), (0.9, 0.1), stratified=True)
 
     @jax.jit  # (eagerly, the draw and EM's loops dispatch op by op)

@@ -104,10 +104,10 @@ def integrate(
           evaluation — randomised QMC on at most 1/16 of the budget, then,
           unless QMC already beats plain MC 15-30-fold on the same points (a
           smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
-          it trains (at most a quarter) and, on a fixed budget, a mixture of
-          Gaussians seeded from the trained grid (`est.method` `"mixture"`,
-          refitted to its own points when it wins, then streamed as importance
-          sampling) — and spends the rest on
+          it trains (at most a quarter) and a mixture of Gaussians seeded
+          from the trained grid (`est.method` `"mixture"`, refitted to its own
+          points when it wins, then streamed as importance sampling) — and
+          spends the rest on
           the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
           for the rules); `est.method` names the winner and `est.pilot` keeps
           the figures. The pilot's evaluations count in `n` but not in the
@@ -223,7 +223,7 @@ def integrate(
         block = adaptive_block(budget)
         rounds = training_rounds(budget, block)
         pilot, state, mixture, rest = run_pilot(pilot_keys, f, lo, hi, budget, batched, rounds,
-                                                block, tolerant)
+                                                block)
         spent = sum(pilot.evaluations)
         branches = (
             lambda: run.qmc(key, rest, spent),
