@@ -104,7 +104,6 @@ def importance(key, f, proposal, n):
 
 
 @eqx.filter_jit
-@eqx.filter_jit
 def per_sample_variance(key, f, proposal, n):
     """Variance of one sample of f/p (what the estimator's variance is, times n)."""
     return jaxmc.importance(key, f, proposal, n).variance * n
