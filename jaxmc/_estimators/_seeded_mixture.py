@@ -49,10 +49,10 @@ WIDE_MIN_SHARE = 1e-3
 WIDE_MAX_SHARE = 0.1
 
 
-def _fitted_gaussians(grid: Grid, x, weights, wide_share) -> tuple[GaussianMixture, jax.Array]:
+def _fitted_gaussians(grid: Grid, x, weights, wide_share=None) -> tuple[GaussianMixture, jax.Array]:
     """`MIXTURE_COMPONENTS` Gaussians fitted by EM to points `x` of `weights` (non-finite
     ones count as zero) in `grid`'s box, and a wide one (`_with_wide_gaussian`) at
-    `wide_share` (a function of the normalised weights, or a number); and whether any
+    `wide_share`, or by the weights' spread if None (`_wide_share`); and whether any
     weight was positive (if none, even weights keep EM finite and the fit says nothing)."""
     weights = jnp.where(jnp.isfinite(weights), weights, 0)
     seen = jnp.sum(weights) > 0
@@ -60,7 +60,7 @@ def _fitted_gaussians(grid: Grid, x, weights, wide_share) -> tuple[GaussianMixtu
     weights = weights / jnp.sum(weights)
     gm = GaussianMixture.from_samples(x, weights, grid.lo, grid.hi,
                                       components=MIXTURE_COMPONENTS, iterations=MIXTURE_EM_ITERATIONS)
-    share = wide_share(weights) if callable(wide_share) else wide_share
+    share = _wide_share(weights) if wide_share is None else wide_share
     return _with_wide_gaussian(gm, grid, x, weights, share), seen
 
 
@@ -134,8 +134,7 @@ def _refit(mixture: Mixture, x, y) -> Mixture:
     """`mixture` refitted to its own draws `x` of values `y` (at most `ADAPT_FIT_POINTS` of
     them, a stride apart); unchanged if they were all zero."""
     stride = max(1, x.shape[0] // ADAPT_FIT_POINTS)
-    gm, seen = _fitted_gaussians(mixture.proposals[1], x[::stride], _magnitude(y[::stride]),
-                                 _wide_share)
+    gm, seen = _fitted_gaussians(mixture.proposals[1], x[::stride], _magnitude(y[::stride]))
     gm = jax.tree.map(lambda new, old: jnp.where(seen, new, old), gm, mixture.proposals[0])
     return eqx.tree_at(lambda m: m.proposals[0], mixture, gm)
 
