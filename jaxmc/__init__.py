@@ -16,6 +16,7 @@ from . import (
 )
 from ._expectation import Expectation as Expectation, expectation as expectation
 from .estimators import (
+    IntegrationEstimate as IntegrationEstimate,
     antithetic as antithetic,
     control_variate as control_variate,
     importance as importance,
@@ -40,6 +41,7 @@ __all__ = [
     "Combined",
     "Estimate",
     "Expectation",
+    "IntegrationEstimate",
     "ReliabilityWarning",
     "antithetic",
     "combine",

@@ -40,6 +40,12 @@ def test_auto_chooses_qmc_on_a_smooth_integrand_and_the_grid_on_a_narrow_peak():
     # Not a close call: the grid-based winner is far cheaper per unit variance than QMC.
     assert cost[int(narrow.pilot.choice)] < cost[0] / 10
     assert abs(narrow.mean - 1.0) < 5 * narrow.stderr
+    # The result's type is exported where `integrate` is; the pilot reads as numbers.
+    assert isinstance(narrow, jaxmc.IntegrationEstimate)
+    shown = repr(narrow.pilot)
+    assert shown.startswith(f"Pilot(choice={narrow.method!r}, qmc=(variance "), shown
+    for name, evaluations in zip(narrow.pilot.candidates, narrow.pilot.evaluations):
+        assert f"{name}=(variance " in shown and f", {evaluations} evaluations)" in shown
     # Every evaluation is counted, the pilot's too: the pilot's, then R whole nets of 2^k,
     # as large as 3 of them fit in what the pilot left.
     from jaxmc._estimators._stream import final_net
@@ -298,6 +304,7 @@ def test_auto_pilot_never_biases_the_result(f, exact, taken):
     lo, hi = box(2)
     est = run_keys(lambda k: jaxmc.integrate(k, f, lo, hi, n=2**15), seed=3, k=120)
     assert est.method == "auto"  # traced: the choice is on the pilot
+    assert "variance_per_evaluation=f64[120,3]" in repr(est.pilot)  # per key: equinox's repr
     assert_unbiased_and_honest(est, exact, honest="equal")
     counts = np.bincount(np.asarray(est.pilot.choice), minlength=3)
     assert {est.pilot.candidates[i] for i in np.flatnonzero(counts)} == set(taken), counts

@@ -81,9 +81,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import is_concrete
 from .._diagnostics import bounded_variance, tail_of
+from .._format import concrete, number
 from .._integrand import evaluate, ratio
 from ..fit import Integrand, VegasPlus, run_adaptation
 from ..proposals import Grid
@@ -160,6 +162,20 @@ class Pilot(eqx.Module):
     cost: jax.Array
     choice: jax.Array
     evaluations: tuple[int, ...] = eqx.field(static=True)
+
+    def __repr__(self) -> str:
+        """`Pilot(choice='adaptive', qmc=(variance 2.63, cost 2.63, 5120 evaluations), ...)`:
+        each candidate's figures (`inf`: blind, unfitted or too loose a fit to compete);
+        equinox's repr (shapes and dtypes) when traced, or batched under `vmap`."""
+        if not concrete(self) or jnp.ndim(self.choice) != 0:
+            return eqx.Module.__repr__(self)
+        figures = [
+            f"{name}=(variance {number(v)}, cost {number(c)}, {m} evaluations)"
+            for name, v, c, m in zip(self.candidates, np.asarray(self.variance_per_evaluation),
+                                     np.asarray(self.cost), self.evaluations)
+        ]
+        chosen = self.candidates[int(self.choice)]
+        return f"Pilot(choice={chosen!r}, {', '.join(figures)})"
 
 
 def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:

@@ -93,7 +93,13 @@ def integrate(
 
     **Arguments:**
 
-    - `key`: a PRNG key; the result is a function of `(key, n)` alone.
+    - `key`: a PRNG key; the result is a function of `(key, n)` alone, and of
+      whether `"auto"` runs eagerly or under `jit`: eagerly its pilot skips
+      what its figures already decide (a clear QMC win, a young grid far
+      costlier than QMC, a mixture that could not win) and the stream gets
+      the evaluations left; under `jit` every stage runs, so the budget can
+      split differently (both estimates unbiased; where the eager pilot
+      skipped nothing they agree).
     - `f`: the integrand, written for one point (or batched with `batched=True`).
     - `lo`, `hi`: the box (scalars or shape `(d,)`).
     - `rtol`, `atol`: tolerances on the standard error; give either or both,
@@ -140,6 +146,11 @@ def integrate(
         - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
           jittered grid; variance from the spread of block means).
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
+      It also sizes `"auto"`'s pilot and the stream's blocks: with the
+      default, even a loose `rtol` costs a few hundred
+      thousand evaluations (0.27-0.33M at `rtol=1e-2` on a smooth 3-D
+      integrand, $x^{-1/2}$ and a 4-D peak); give a `max_n` of the order
+      the tolerance needs.
     - `chunk`: samples evaluated per loop step (default $2^{18}$, $2^{16}$ for
       `"auto"`'s mixture); bounds the memory and, with several devices, is
       split among them (one block per device at least). Results do not depend
@@ -171,7 +182,9 @@ def integrate(
     (in `args` too); with tolerances it is a `while_loop` (forward-mode only).
 
     **Compilation** is cached per integrand object `f` and sizes: a new
-    `lambda` or closure per call compiles anew (about 2 s each). For a family
+    `lambda` or closure per call compiles anew (for `"auto"` at $10^5$-$10^6$
+    evaluations, in the `auto` benchmark on 2 CPU cores: 3-9 s where QMC
+    wins, 6-14 s where the grid does, 7-15 s with the mixture). For a family
     of integrands define `f` once and pass the parameters in `args`: new
     values of the same shapes and dtypes reuse the compiled code (for
     `"auto"`, once each way the pilot can end). As under `jax.jit`, a global
