@@ -147,10 +147,9 @@ def integrate(
           jittered grid; variance from the spread of block means).
     - `max_n`: the budget when only tolerances are given (default $2^{30}$).
       It also sizes `"auto"`'s pilot and the stream's blocks: with the
-      default, even a loose `rtol` costs a few hundred
-      thousand evaluations (0.27-0.33M at `rtol=1e-2` on a smooth 3-D
-      integrand, $x^{-1/2}$ and a 4-D peak); give a `max_n` of the order
-      the tolerance needs.
+      default, even a loose `rtol` costs a few hundred thousand evaluations
+      (0.27-0.33M at `rtol=1e-2` on a smooth 3-D integrand, $x^{-1/2}$ and a
+      4-D peak); give a `max_n` of the order the tolerance needs.
     - `chunk`: samples evaluated per loop step (default $2^{18}$, $2^{16}$ for
       `"auto"`'s mixture); bounds the memory and, with several devices, is
       split among them (one block per device at least). Results do not depend
