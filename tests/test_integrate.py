@@ -30,6 +30,39 @@ def test_tolerance_is_met_and_estimate_is_right():
     assert est.n < 2**22
 
 
+def test_tolerance_checks_start_small_whatever_the_chunk():
+    # With a tolerance QMC's eight nets are checked from 2^10 points each, and the first chunk
+    # is walked in small steps: at the default max_n (2^30) the first check once came after
+    # a whole chunk, 2^18 evaluations. The run stops when two checks in a row pass; they fall
+    # at the same nets for any chunk.
+    from jaxmc._estimators._plan import QMC_PASSES_TO_STOP
+
+    assert QMC_PASSES_TO_STOP == 2
+    f = lambda x: jnp.exp(-jnp.sum(x**2))
+    exact = (np.sqrt(np.pi) / 2 * math.erf(1.0)) ** 3
+    runs = [jaxmc.integrate(jax.random.key(0), f, LO, HI, rtol=rtol, method="qmc", chunk=chunk)
+            for rtol in (1e-4, 1e-7) for chunk in (2**13, 2**18)]
+    for est in runs:
+        assert est.converged and abs(float(est.mean) - exact) < 5 * float(est.stderr)
+    assert int(runs[0].n) == 8 * 2**11  # met on the first nets, and on the second
+    # ...at 2^14 and 2^15 points: with the default chunk, the last two checks of its small
+    # steps (which the first whole step's check repeats, and stops on).
+    assert int(runs[2].n) == 8 * 2**15
+    for small, large in (runs[:2], runs[2:]):
+        assert int(small.n) == int(large.n)
+        np.testing.assert_allclose(small.mean, large.mean, rtol=1e-12)
+
+
+def test_block_means_meet_a_tolerance_from_sixteen_blocks_on():
+    # Stratified blocks (25^3 points in 3-D) are units of one degree of freedom each: a loose
+    # tolerance stops the run at the sixteenth, not at the second nor after a whole chunk.
+    from jaxmc._estimators._plan import MIN_BLOCKS_TO_STOP
+
+    assert MIN_BLOCKS_TO_STOP == 16
+    est = jaxmc.integrate(jax.random.key(1), F, LO, HI, rtol=0.5, method="stratified")
+    assert est.converged and int(est.n) == 16 * 25**3
+
+
 def test_atol_and_budget_cap():
     # An unreachable tolerance stops at the budget, says so on the result and warns.
     with pytest.warns(jaxmc.ReliabilityWarning, match="tolerance was not met"):
@@ -195,9 +228,13 @@ def test_four_devices_match_one_device():
                             chunk=2**15)
         e = jaxmc.integrate(key, f, jnp.zeros(3), jnp.ones(3), n=300_000, method="adaptive",
                             mesh=one)
+        # QMC to a tolerance: its first chunk in small steps, a round of 8 blocks each
+        q = jaxmc.integrate(key, f, jnp.zeros(3), jnp.ones(3), rtol=1e-7, method="qmc")
+        r = jaxmc.integrate(key, f, jnp.zeros(3), jnp.ones(3), rtol=1e-7, method="qmc", mesh=one)
         print(*a.mean.tolist(), *b.mean.tolist(), *a.variance.tolist(), *b.variance.tolist(),
               int(a.n), int(b.n), float(t.stderr[0] / t.mean[0]),
-              *c.mean.tolist(), *e.mean.tolist(), *c.variance.tolist(), *e.variance.tolist())
+              *c.mean.tolist(), *e.mean.tolist(), *c.variance.tolist(), *e.variance.tolist(),
+              *q.mean.tolist(), *r.mean.tolist(), int(q.n), int(r.n))
     """
     values = _run_script(code, {"XLA_FLAGS": subprocess_xla_flags(devices=4)}).split()
     a_mean, b_mean = np.array(values[0:2], float), np.array(values[2:4], float)
@@ -209,6 +246,9 @@ def test_four_devices_match_one_device():
     adaptive = np.array(values[11:19], float).reshape(4, 2)  # means and variances, 4 and 1 devices
     np.testing.assert_allclose(adaptive[0], adaptive[1], rtol=1e-12)
     np.testing.assert_allclose(adaptive[2], adaptive[3], rtol=1e-9)
+    qmc = np.array(values[19:23], float).reshape(2, 2)  # means, 4 and 1 devices
+    np.testing.assert_allclose(qmc[0], qmc[1], rtol=1e-12)
+    assert values[23] == values[24] and 8 * 2**10 < int(values[23]) < 2**20
 
 
 @pytest.mark.slow

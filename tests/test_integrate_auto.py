@@ -48,7 +48,7 @@ def test_auto_chooses_qmc_on_a_smooth_integrand_and_the_grid_on_a_narrow_peak():
         assert f"{name}=(variance " in shown and f", {evaluations} evaluations)" in shown
     # Every evaluation is counted, the pilot's too: the pilot's, then R whole nets of 2^k,
     # as large as 3 of them fit in what the pilot left.
-    from jaxmc._estimators._stream import final_net
+    from jaxmc._estimators._plan import final_net
 
     spent = sum(smooth.pilot.evaluations)
     streamed = int(smooth.n) - spent

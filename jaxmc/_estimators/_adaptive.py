@@ -36,7 +36,7 @@ from .._integrand import ratio
 from .._progress import report
 from .._stats import Estimate, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
-from ._stream import BLOCK
+from ._plan import BLOCK, MIN_BLOCKS_TO_STOP
 
 
 # Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
@@ -45,7 +45,7 @@ run_adaptation = eqx.filter_jit(_run_adaptation)
 TRAINING_ROUNDS = 10  # VEGAS+ rounds that train the grid, at most (discarded)
 MAX_REFINE_ROUNDS = 32  # with a tolerance, adapting rounds after training; then a frozen stream
 MIN_STREAM_BLOCKS = 8  # a frozen stream's variance comes from the spread of its rounds
-MIN_ROUNDS_TO_STOP = 8  # ... as the refining rounds' does: fewer cannot meet a tolerance
+MIN_ROUNDS_TO_STOP = MIN_BLOCKS_TO_STOP  # the refining rounds' too: fewer cannot meet a tolerance
 
 
 def adaptive_block(budget: int) -> int:

@@ -100,8 +100,8 @@ from ._pilot_nets import (
     pilot_qmc_points,
     relative_variance,
 )
+from ._plan import QMC_REPLICAS, final_net
 from ._seeded_mixture import seeded_mixture
-from ._stream import QMC_REPLICAS, final_net
 
 
 CANDIDATES = ("qmc", "adaptive", "mixture")

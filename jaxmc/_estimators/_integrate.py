@@ -31,6 +31,7 @@ from .._checks import (
     is_concrete,
 )
 from .._diagnostics import warn_if_unreliable
+from .._format import concrete
 from .._integrand import bind
 from .._stats import Estimate, ReliabilityWarning, estimate_fields, rounding_floor
 from ..proposals import Grid
@@ -125,7 +126,9 @@ def integrate(
           power of two of points that 3 replicas fit in and the rest of the
           budget buys more replicas ($R$ = 3…5); with a tolerance $R = 8$ and
           the stopping rule is checked when each replica holds a power of two
-          of points. Few replicas make the error bar itself uncertain: it has
+          of points, from $2^{10}$ on, and must pass twice in a row (at $2^k$
+          and $2^{k+1}$: a spread of 8 small nets that fell low by chance
+          stopped runs early and low). Few replicas make the error bar itself uncertain: it has
           `est.dof` $= R - 1$ degrees of freedom and `est.interval` is
           Student's $t$ interval (mean ± 2 stderr alone covers 82% at $R = 3$,
           91% at $R = 8$). On smooth integrands the error falls like $n^{-1}$
@@ -139,17 +142,27 @@ def integrate(
           discarded; the rest of the rounds go on adapting, as vegas's do, and
           are averaged with weights growing with the round (fixed in advance,
           so the average stays unbiased), the error bar from their scatter. With a
-          tolerance, after 32 such rounds the last grid streams on frozen
+          tolerance, the rounds may stop from the 16th on (fewer rounds'
+          scatter is too uncertain an error bar), and after 32 the last grid
+          streams on frozen
           (sharded over devices; the rounds before it, being sequential, are
           not) and that stream alone gives the result. See
           `jaxmc/_estimators/_adaptive.py`.
         - `"plain"` (i.i.d. uniform, eq. 8), `"stratified"` (each block a
           jittered grid; variance from the spread of block means).
-    - `max_n`: the budget when only tolerances are given (default $2^{30}$).
-      It also sizes `"auto"`'s pilot and the stream's blocks: with the
-      default, even a loose `rtol` costs a few hundred thousand evaluations
-      (0.27-0.33M at `rtol=1e-2` on a smooth 3-D integrand, $x^{-1/2}$ and a
-      4-D peak); give a `max_n` of the order the tolerance needs.
+    - `max_n`: the budget when only tolerances are given (default $2^{30}$),
+      a cap rather than a size: the stream checks the tolerance from its
+      first blocks on, and with `rtol` `"auto"`'s pilot is first sized for
+      $2^{17}$ evaluations (about $3\cdot10^4$ of them), sized anew for
+      `max_n` only when its winner, a grid or a mixture, needs more than four
+      times that for `rtol` (measured, at `rtol=1e-2`: $10^4$ evaluations on a
+      smooth 3-D integrand, $4.5\cdot10^4$ on $x^{-1/2}$, $5.5\cdot10^4$ on a
+      4-D peak, where the pilot sized for $2^{30}$ took 0.27-0.33M). Under
+      `jit`, where the figures are not known, the pilot is sized for `max_n`,
+      as it is with `atol` alone; under `vmap` alone the probe's size stands
+      when the figures are batched. `method="adaptive"`
+      sizes its rounds for `max_n` (2^14 points by default, 26 of them at
+      least): give it a `max_n` of the order the tolerance needs.
     - `chunk`: samples evaluated per loop step (default $2^{18}$, $2^{16}$ for
       `"auto"`'s mixture); bounds the memory and, with several devices, is
       split among them (one block per device at least). Results do not depend
@@ -232,17 +245,18 @@ def integrate(
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
         key, pilot_keys = split_keys(key)
-        block = adaptive_block(budget)
-        rounds = training_rounds(budget, block)
-        pilot, state, mixture, rest = run_pilot(pilot_keys, f, lo, hi, budget, batched, rounds,
-                                                block)
-        spent = sum(pilot.evaluations)
+        probe = (n is None and rtol is not None and is_concrete(rtol) and not _staged()
+                 and float(np.asarray(rtol)) > 0)
+        pilot, state, mixture, rest, sized_rest, block, spent = _sized_pilot(
+            pilot_keys, f, lo, hi, budget, batched, float(np.asarray(rtol)) if probe else None
+        )
         branches = (
             lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
-            # Importance sampling from the mixture the pilot seeded from the grid.
-            lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk),
+            # Importance sampling from the mixture the pilot seeded from the grid (refitted
+            # on a tenth of what the budget that sized the pilot left).
+            lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk, sized_rest),
         )[: len(pilot.candidates)]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
@@ -283,6 +297,43 @@ def integrate(
 
 # Below this budget "auto" skips the pilot: a few thousand points cannot be shared.
 _AUTO_MIN_BUDGET = 1 << 14
+# With only a tolerance (and `rtol` among it), "auto"'s pilot is first sized for this budget,
+# not for `max_n`: about 3e4 evaluations, where `max_n`'s default sized one of 2e5.
+PROBE_BUDGET = 1 << 17
+# ...and sized for `max_n` after all, anew, when the probe's winner is a grid or a mixture
+# that needs more than PROBE_REACH times the probe's budget for `rtol` (variance per
+# evaluation / rtol^2): a long run pays for a larger pilot (rounds of 2^14 points, grids of
+# 256 bins per axis: 2-3x less variance at 1e6 than the probe's 2^11 and 64).
+PROBE_REACH = 4
+
+
+def _staged() -> bool:
+    """Whether this call is being staged out (traced under `jit`)."""
+    return not is_concrete(jnp.zeros(()))
+
+
+def _sized_pilot(keys, f, lo, hi, budget, batched, rtol):
+    """`run_pilot` sized for `budget`, or, given `rtol` (a tolerance run outside `jit`), first
+    for `PROBE_BUDGET` (see there). Returns `(Pilot, grid state, mixture, the stream's
+    budget, what the budget that sized the pilot left of it, the pilot's round size,
+    evaluations spent)`. The stream's budget is `budget` less the pilot's stages (as
+    `run_pilot` counts them) and, when the pilot was sized anew, the probe's evaluations,
+    which count in `n` (not in `pilot.evaluations`)."""
+    probed = 0
+    for sizing in ([min(budget, PROBE_BUDGET)] if rtol is not None else []) + [budget]:
+        block = adaptive_block(sizing)
+        rounds = training_rounds(sizing, block)
+        pilot, state, mixture, rest = run_pilot(keys, f, lo, hi, sizing, batched, rounds, block)
+        if sizing == budget or not concrete(pilot):
+            break
+        choice = int(pilot.choice)
+        need = float(pilot.variance_per_evaluation[choice]) / rtol**2
+        if pilot.candidates[choice] == "qmc" or need <= PROBE_REACH * sizing:
+            break  # (QMC's stream does not depend on the pilot's size)
+        probed += sum(pilot.evaluations)
+        keys = tuple(jax.random.fold_in(k, 1) for k in keys)
+    stream = rest + (budget - sizing) - probed
+    return pilot, state, mixture, stream, rest, block, probed + sum(pilot.evaluations)
 
 
 def _blocks_mesh(mesh: Mesh | None) -> Mesh | AbstractMesh:

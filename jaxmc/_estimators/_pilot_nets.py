@@ -46,7 +46,8 @@ from .._box import to_box
 from .._diagnostics import power_law_tail, tail_of
 from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
-from ._stream import QMC_REPLICAS, replica_points
+from ._plan import QMC_REPLICAS
+from ._stream import replica_points
 
 
 PILOT_SHARE = 1 / 16  # at most this share of the budget on the QMC pilot

@@ -18,8 +18,9 @@ from ._adaptive import (
     train_vegas_plus,
     training_rounds,
 )
+from ._plan import plan
 from ._seeded_mixture import adaptation_points, adapted_mixture
-from ._stream import plan, stream_on_mesh
+from ._stream import stream_on_mesh
 
 
 class Runner:
@@ -48,11 +49,12 @@ class Runner:
     def qmc(self, key, budget, done=0):
         return self.block_method("qmc", key, budget, done)
 
-    def mixture(self, key, budget, done, mixture, draws, chunk):
+    def mixture(self, key, budget, done, mixture, draws, chunk, sized_by=None):
         """Refit auto's winning `mixture` to its pilot's `draws` and to points of its own
-        (`adapted_mixture`: they count in `n`, not in the mean), then stream from it."""
+        (`adapted_mixture`: they count in `n`, not in the mean; as many as `sized_by`, by
+        default `budget`, allows), then stream from it."""
         adapt_key, key = jax.random.split(key)
-        size = adaptation_points(budget)
+        size = adaptation_points(budget if sized_by is None else sized_by)
         if size:
             mixture = adapted_mixture(adapt_key, mixture, draws, f=self.f, size=size,
                                       batched=self.batched)
@@ -83,7 +85,8 @@ class Runner:
             return refined
 
         def streamed():
-            run_plan = plan("adaptive", rest, self.chunk, self.mesh.size, self.d, block)
+            run_plan = plan("adaptive", rest, self.chunk, self.mesh.size, self.d, block,
+                            tolerant=True)
             est = self._stream(key, frozen_vegas_plus(state, block), run_plan, done + rounds * block)
             return dataclasses.replace(est, n=est.n + refined.n)
 
