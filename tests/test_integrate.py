@@ -88,7 +88,7 @@ def test_chunk_invariance_and_determinism(method):
     g = lambda x: jnp.exp(jnp.sum(x)) * (x[0] < 0.37)
     runs = [
         jaxmc.integrate(key, g, LO, HI, n=200_000, method=method, chunk=chunk)
-        for chunk in (1, 2**15, 2**17, 2**20)
+        for chunk in (1, 2**15, 2**20)
     ]
     for est in runs[1:]:
         np.testing.assert_allclose(est.mean, runs[0].mean, rtol=1e-12)

@@ -155,7 +155,8 @@ def integrate(
       first blocks on, and with `rtol` `"auto"`'s pilot is first sized for
       $2^{17}$ evaluations (about $3\cdot10^4$ of them), sized anew for
       `max_n` only when its winner, a grid or a mixture, needs more than four
-      times that for `rtol` (measured, at `rtol=1e-2`: $10^4$ evaluations on a
+      times that for `rtol` (the probe's evaluations then count in `n`, not
+      in `est.pilot`; measured, at `rtol=1e-2`: $10^4$ evaluations on a
       smooth 3-D integrand, $4.5\cdot10^4$ on $x^{-1/2}$, $5.5\cdot10^4$ on a
       4-D peak, where the pilot sized for $2^{30}$ took 0.27-0.33M). Under
       `jit`, where the figures are not known, the pilot is sized for `max_n`,
