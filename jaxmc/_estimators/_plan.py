@@ -1,4 +1,5 @@
-"""The static sizes of an `integrate` stream (`Plan`): blocks, replicas, loop steps."""
+"""The static sizes of an `integrate` stream (`Plan`: blocks, replicas, loop steps, the
+small first steps of a tolerance run) and the constants of its stopping rules."""
 
 from __future__ import annotations
 
