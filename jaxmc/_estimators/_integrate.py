@@ -246,10 +246,10 @@ def integrate(
         method = "qmc"  # too small a budget to share with a pilot
     if method == "auto":
         key, pilot_keys = split_keys(key)
-        probe = (n is None and rtol is not None and is_concrete(rtol) and not _staged()
-                 and float(np.asarray(rtol)) > 0)
+        probe = n is None and rtol is not None and is_concrete(rtol) and not _staged()
+        probe_rtol = float(np.asarray(rtol)) if probe else 0.0
         pilot, state, mixture, rest, sized_rest, block, spent = _sized_pilot(
-            pilot_keys, f, lo, hi, budget, batched, float(np.asarray(rtol)) if probe else None
+            pilot_keys, f, lo, hi, budget, batched, probe_rtol if probe_rtol > 0 else None
         )
         branches = (
             lambda: run.qmc(key, rest, spent),

@@ -228,49 +228,49 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         )
     else:
 
-        def met(t, carry):
-            """Whether the tolerance is met after `t` steps (at a point where it is checked)."""
-            est = stream_estimate(*carry, plan.replicas)
-            tol = jnp.maximum(atol, rtol * jnp.abs(est.mean))
-            # Enough units to trust a variance estimate (two samples, or MIN_BLOCKS_TO_STOP
-            # block means: an early step may be one block); QMC only at powers of two per
-            # replica (whole nets), i.e. after 1, 2, 4, ... steps (each a power of two of
-            # rounds).
+        def checked(t, carry, checks):
+            """The checks after `t` steps, `checks = (the last one passed, the one before)`:
+            updated where the tolerance is checked. Enough units to trust a variance estimate
+            (two samples, or MIN_BLOCKS_TO_STOP block means: an early step may be one block);
+            QMC only at powers of two per replica (whole nets), i.e. after 1, 2, 4, ... steps
+            (each a power of two of rounds)."""
             if plan.replicas == 1:
-                units = carry[0].count >= (2 if per_sample else MIN_BLOCKS_TO_STOP)
+                at_check = carry[0].count >= (2 if per_sample else MIN_BLOCKS_TO_STOP)
             else:
-                units = (t >= 1) & ((t & (t - 1)) == 0)
-            return units & jnp.all(est.stderr <= tol)
+                at_check = (t >= 1) & ((t & (t - 1)) == 0)
+            est = stream_estimate(*carry, plan.replicas)
+            passed = jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
+            return tuple(jnp.where(at_check, new, old)
+                         for new, old in zip((passed, checks[0]), checks))
 
         def walk(state, per_step, steps):
-            """Steps of `per_step` blocks from `state = (steps done, carry, the last check
-            passed)` until the tolerance is met or `steps` are done. QMC stops only when
-            two checks in a row pass (nets of 2^k and 2^(k+1) points): the spread of 8
-            small nets that fell low stopped runs early and low (a 4-D camel at rtol=1e-3:
-            4 of 40 keys beyond 3 sigma)."""
+            """Steps of `per_step` blocks from `state = (steps done, carry, checks)` until
+            the tolerance is met or `steps` are done. QMC stops only when two checks in a
+            row pass (nets of 2^k and 2^(k+1) points): the spread of 8 small nets that fell
+            low stopped runs early and low (a 4-D camel at rtol=1e-3: 4 of 40 keys beyond 3
+            sigma)."""
             run_step = sharded(per_step)
+            once = plan.replicas == 1 or QMC_PASSES_TO_STOP == 1
 
             def cond(state):
-                t, carry, passed = state
-                once = plan.replicas == 1 or QMC_PASSES_TO_STOP == 1
-                converged = met(t, carry) & (passed | once)
-                return (t < steps) & ~converged
+                t, _, (last, before) = state
+                return (t < steps) & ~(last & (before | once))
 
             def body(state):
-                t, carry, passed = state
-                if plan.replicas > 1:  # (the check at t, made in `cond`, remembered)
-                    passed = jnp.where((t & (t - 1)) == 0, met(t, carry), passed)
-                return t + 1, step(run_step, carry, t), passed
+                t, carry, checks = state
+                carry = step(run_step, carry, t)
+                return t + 1, carry, checked(t + 1, carry, checks)
 
             return jax.lax.while_loop(cond, body, state)
 
-        state = (zero, (start, zero, zero), _carry_typed(jnp.zeros((), bool), mesh))
+        no = _carry_typed(jnp.zeros((), bool), mesh)
+        state = (zero, (start, zero, zero), (no, no))
         if plan.early_steps > 1:
             # The first step's blocks in smaller steps (the same blocks, the same points);
-            # after them the whole steps go on from the second, its checks again at 1, 2,
-            # 4, ... whole steps (a tolerance met early is met again there, and stops).
-            _, carry, passed = walk(state, plan.per_step // plan.early_steps, plan.early_steps)
-            state = (zero + 1, carry, passed)
+            # after them the whole steps go on from the second, its checks again at 2, 4,
+            # ... whole steps.
+            _, carry, checks = walk(state, plan.per_step // plan.early_steps, plan.early_steps)
+            state = (zero + 1, carry, checks)
         _, carry, _ = walk(state, plan.per_step, plan.steps)
     est = stream_estimate(*carry, plan.replicas)
     if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
