@@ -46,7 +46,7 @@ def test_auto_meets_a_tolerance_on_the_posterior_within_five_times_vegas(seed, g
 def test_a_loose_tolerance_sizes_auto_for_what_it_needs():
     # With only `rtol`, auto's pilot is first sized for PROBE_BUDGET evaluations, not for
     # max_n (2^30 by default): the posterior at rtol=1e-2 took 0.33M evaluations when it was.
-    from jaxmc._estimators._integrate import PROBE_BUDGET
+    from jaxmc._estimators._plan import PROBE_BUDGET
 
     assert PROBE_BUDGET == 2**17
     est = jaxmc.integrate(jax.random.key(0), POSTERIOR, jnp.zeros(5), jnp.ones(5), rtol=1e-2)

@@ -209,7 +209,7 @@ def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched
 
 
 @eqx.filter_jit
-def _grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
+def grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
     """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
     skipped, so one compiled program serves the screening and the training stage: ~1.5 s
     of a first call): the last round's relative variance per evaluation, whether it saw
@@ -373,7 +373,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         return alone, None, None, screened_rest
     grid = Grid(lo, hi, bins=grid_bins(round_size))
     settings = dict(f=f, round_size=round_size, batched=batched)
-    v_grid, grid_blind, state, samples = _grid_rounds(
+    v_grid, grid_blind, state, samples = grid_rounds(
         key_screen, grid, jnp.int32(screen), rounds=rounds, **settings
     )
     screened, screened_two, decided = _screen(qmc, v_grid, grid_blind)
@@ -382,7 +382,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
         return pilot, state, None, screened_rest
     if rounds > screen:
-        v_grid, grid_blind, state, samples = _grid_rounds(
+        v_grid, grid_blind, state, samples = grid_rounds(
             key_train, state.grid, jnp.int32(rounds - screen), rounds=rounds, **settings
         )
     # No mixture measured so far has gone below MIXTURE_FLOOR: when QMC or the grid already

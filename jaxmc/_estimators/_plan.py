@@ -1,5 +1,6 @@
 """The static sizes of an `integrate` stream (`Plan`: blocks, replicas, loop steps, the
-small first steps of a tolerance run) and the constants of its stopping rules."""
+small first steps of a tolerance run), the constants of its stopping rules, and the size of
+a tolerance run's probe."""
 
 from __future__ import annotations
 
@@ -34,6 +35,21 @@ QMC_PASSES_TO_STOP = 2  # checks in a row that must pass (see `stream`)
 # keys, where 8 refining rounds of 2^11 points met it: x^-1/2 in 2-D, 4 keys at z = -3.8
 # to -4.6, (sum x)^-3/2 in 4-D one at z = 11; with 16, none beyond 2.9.
 MIN_BLOCKS_TO_STOP = 16
+# With only a tolerance (and `rtol` among it), "auto"'s pilot and "adaptive"'s training are
+# first sized for this budget, not for `max_n`: about 3e4 evaluations for the pilot, 2e4 for
+# the training, where `max_n`'s default sized them for 2e5 and 1.6e5.
+PROBE_BUDGET = 1 << 17
+# ...and sized for `max_n` after all, anew, when the probe's grid (or auto's winning
+# mixture) needs more than PROBE_REACH times the probe's budget for `rtol` (variance per
+# evaluation / rtol^2): a long run pays for a larger pilot (rounds of 2^14 points, grids of
+# 256 bins per axis: 2-3x less variance at 1e6 than the probe's 2^11 and 64).
+PROBE_REACH = 4
+# ...for `method="adaptive"`, twice the budget: beyond it the probe's grid, refined for 32
+# rounds of 2^11 points that its frozen stream then discards, cost more than training anew.
+# Measured on a 4-D Gaussian peak (sd 0.02; the probe asked for 2.6-3.0e5 evaluations at
+# rtol=1e-3): 0.61M evaluations on the probe's grid, 0.45M sized anew (the probe's 2e4
+# included); at rtol=1.5e-3 (1.2e5 asked) 0.23-0.26M on the probe's grid, 0.43M anew.
+ADAPTIVE_PROBE_REACH = 2
 
 
 class Plan(eqx.Module):

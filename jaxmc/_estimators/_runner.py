@@ -9,16 +9,19 @@ import jax.numpy as jnp
 
 from .._checks import is_concrete
 from .._progress import progress_bar
+from ..proposals import Grid
 from ._adaptive import (
     MIN_STREAM_BLOCKS,
     adaptive_block,
     frozen_vegas_plus,
+    grid_bins,
     refine,
     refining_rounds,
     train_vegas_plus,
     training_rounds,
 )
-from ._plan import plan
+from ._auto import grid_rounds
+from ._plan import ADAPTIVE_PROBE_REACH, PROBE_BUDGET, plan
 from ._seeded_mixture import adaptation_points, adapted_mixture
 from ._stream import stream_on_mesh
 
@@ -62,14 +65,37 @@ class Runner:
                                 chunk=chunk)
         return dataclasses.replace(est, n=est.n + size)
 
-    def adaptive(self, key, budget, grid):
-        """Train a VEGAS+ grid from `grid`, then refine and stream on it (`_adaptive`)."""
-        block = adaptive_block(budget)
-        rounds = training_rounds(budget, block)
-        train_key, key = jax.random.split(key)
-        state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
-        est = self.trained_grid(key, budget - rounds * block, state, block, rounds * block)
-        return dataclasses.replace(est, n=est.n + rounds * block)
+    def adaptive(self, key, budget, probe_rtol=None):
+        """Train a VEGAS+ grid from uniform, then refine and stream on it (`_adaptive`).
+
+        The rounds, grid bins and training are sized for `budget`; given `probe_rtol` (a
+        tolerance run outside `jit`), first for `PROBE_BUDGET`, and for `budget` anew, with
+        fresh keys, only when the probe's trained grid saw nothing or needs more than
+        `ADAPTIVE_PROBE_REACH` times that budget for `probe_rtol` (its variance per
+        evaluation as auto's pilot measures it, over `probe_rtol`^2). The probe's
+        evaluations count in `n`.
+        Under `vmap` the probe's sizes stand (its figures are batched).
+        """
+        spent = 0
+        for sizing in ([min(budget, PROBE_BUDGET)] if probe_rtol else []) + [budget]:
+            block = adaptive_block(sizing)
+            rounds = training_rounds(sizing, block)
+            train_key, key = jax.random.split(key)
+            grid = Grid(self.lo, self.hi, bins=grid_bins(block))
+            if sizing == budget:
+                state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
+                break
+            variance, blind, state, _ = grid_rounds(train_key, grid, jnp.int32(rounds), f=self.f,
+                                                    rounds=rounds, round_size=block,
+                                                    batched=self.batched)
+            if not is_concrete(variance) or (
+                not bool(blind) and float(variance) / probe_rtol**2 <= ADAPTIVE_PROBE_REACH * sizing
+            ):
+                break
+            spent += rounds * block
+        done = spent + rounds * block
+        est = self.trained_grid(key, budget - done, state, block, done)
+        return dataclasses.replace(est, n=est.n + done)
 
     def trained_grid(self, key, budget, state, block, done=0):
         """Refining rounds from a trained VEGAS+ `state`; with a tolerance they did not
