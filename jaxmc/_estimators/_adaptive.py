@@ -96,6 +96,20 @@ def train_vegas_plus(key, f, grid, rounds, block, batched):
     return state
 
 
+def fixed_for_derivatives(tree):
+    r"""`tree` (a density, an adaptation's state) with no derivative through its floats.
+
+    A density fitted to the integrand's values depends on its parameters, but an
+    estimate's derivative is taken with the density fixed: for $x_i$ drawn from a
+    fixed $q$, $\sum_i w_i\,\partial_\theta f_\theta(x_i)/q(x_i)$ estimates
+    $\partial_\theta I$ without bias, and the fit's own derivative (through EM,
+    sorting, an optimiser's steps, VEGAS's damped histograms) only adds noise, or
+    NaN where $f$ underflows to 0 and $\sqrt{\cdot}$ or $\log$ meets it.
+    """
+    floats, rest = eqx.partition(tree, eqx.is_inexact_array)
+    return eqx.combine(jax.lax.stop_gradient(floats), rest)
+
+
 def frozen_vegas_plus(state, block: int):
     """What streaming needs of a VEGAS+ state: the grid, the points per hypercube
     its last round allocated for the next, and the hypercubes per axis."""
@@ -175,6 +189,8 @@ def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=Fal
             n = state.draw.u.shape[0]
             jax.debug.callback(functools.partial(_report_round, total=rounds * n),
                                est.mean, est.stderr, (i + 1) * n, i == rounds - 1)
+        # The next round's grid is fixed for its derivative (`fixed_for_derivatives`).
+        new_state = fixed_for_derivatives(new_state)
         carry = (eqx.partition(new_state, eqx.is_array)[0], (samples.fx, samples.log_q))
         return carry, Estimate(**estimate_fields(est))
 

@@ -13,6 +13,7 @@ from ..proposals import Grid
 from ._adaptive import (
     MIN_STREAM_BLOCKS,
     adaptive_block,
+    fixed_for_derivatives,
     frozen_vegas_plus,
     grid_bins,
     refine,
@@ -58,9 +59,12 @@ class Runner:
         default `budget`, allows), then stream from it."""
         adapt_key, key = jax.random.split(key)
         size = adaptation_points(budget if sized_by is None else sized_by)
+        mixture = fixed_for_derivatives(mixture)
         if size:
-            mixture = adapted_mixture(adapt_key, mixture, draws, f=self.f, size=size,
-                                      batched=self.batched)
+            mixture = fixed_for_derivatives(adapted_mixture(
+                adapt_key, mixture, fixed_for_derivatives(draws), f=self.f, size=size,
+                batched=self.batched,
+            ))
         est = self.block_method("importance", key, budget - size, done + size, frozen=mixture,
                                 chunk=chunk)
         return dataclasses.replace(est, n=est.n + size)
@@ -102,6 +106,7 @@ class Runner:
         meet, a frozen stream after them (`_adaptive`)."""
         refine_key, key = jax.random.split(key)
         rounds = refining_rounds(budget, block, self.tolerant)
+        state = fixed_for_derivatives(state)
         with progress_bar(self.progress, done + rounds * block, done):
             refined, state = refine(refine_key, state, self.rtol, self.atol, f=self.f,
                                     batched=self.batched, rounds=rounds, tolerant=self.tolerant,
