@@ -112,10 +112,11 @@ def integrate(
           unless QMC already beats plain MC 15-30-fold on the same points (a
           smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
           it trains (at most a quarter) and a mixture of Gaussians seeded
-          from the trained grid (`est.method` `"mixture"`, refitted to its own
+          from the trained grid, with one more at each mode the grid missed
+          that an ascent of $\log|f|$ from QMC's best points found (where JAX
+          can differentiate `f`; `est.method` `"mixture"`, refitted to its own
           points when it wins, then streamed as importance sampling) — and
-          spends the rest on
-          the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
+          spends the rest on the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
           for the rules); `est.method` names the winner and `est.pilot` keeps
           the figures. The pilot's evaluations count in `n` but not in the
           mean, which stays unbiased.
@@ -196,6 +197,9 @@ def integrate(
 
     Without tolerances the loop has a fixed trip count and is differentiable
     (in `args` too); with tolerances it is a `while_loop` (forward-mode only).
+    A density fitted to `f`'s values (auto's grid or mixture, `"adaptive"`'s
+    grid) is held fixed: the derivative is $\sum_i w_i\,\partial f(x_i)/q(x_i)$,
+    an unbiased estimate of the integral's.
 
     **Compilation** is cached per integrand object `f` and sizes: a new
     `lambda` or closure per call compiles anew (for `"auto"` at $10^5$-$10^6$

@@ -96,21 +96,26 @@ class QMCFigures(eqx.Module):
     heavy: jax.Array  # the values have a power-law tail (Pareto k-hat > 0.2)
 
 
-def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
-    """Integrand values `(QMC_REPLICAS, blocks * 2**log2_block, ...)` on blocks `first`,
-    ..., `first + blocks - 1` of `2**log2_block` points of the pilot's scrambled Sobol'
-    nets (one scramble per replica, from `key`)."""
+def net_points(key, lo, hi, first, blocks, log2_block):
+    """Points `(QMC_REPLICAS, blocks * 2**log2_block, d)` (or without `d` in one dimension)
+    of blocks `first`, ..., `first + blocks - 1` of `2**log2_block` points of the pilot's
+    scrambled Sobol' nets (one scramble per replica, from `key`), in the box."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
-    volume = jnp.prod(hi - lo)
 
     def replica(k):
         scramble = sobol_scramble(k, d)
         u = jnp.concatenate([replica_points(scramble, first + b, log2_block, lo.dtype)
                              for b in range(blocks)])
-        y, _ = ratio(evaluate(f, to_box(u if lo.ndim else u[:, 0], lo, hi), batched), 1 / volume)
-        return y
+        return to_box(u if lo.ndim else u[:, 0], lo, hi)
 
     return jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
+
+
+def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
+    """Integrand values `(QMC_REPLICAS, blocks * 2**log2_block, ...)` at `net_points`."""
+    x = net_points(key, lo, hi, first, blocks, log2_block)
+    volume = jnp.prod(hi - lo)
+    return jax.vmap(lambda xr: ratio(evaluate(f, xr, batched), 1 / volume)[0])(x)
 
 
 def measure_nets(y, growth, bar):
