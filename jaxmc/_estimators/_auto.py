@@ -110,7 +110,7 @@ from ._pilot_nets import (
     relative_variance,
 )
 from ._plan import QMC_REPLICAS, final_net
-from ._seeded_mixture import _magnitude, seeded_mixture
+from ._seeded_mixture import _magnitude, importance_weights, seeded_mixture
 
 
 CANDIDATES = ("qmc", "adaptive", "mixture")
@@ -261,8 +261,7 @@ def _mixture_pilot(key, grid, samples, qmc_key, early, *, f, size, batched):
         x = jnp.reshape(x, (-1, x.shape[-1]))
         modes = find_modes(f, batched, grid.lo, grid.hi, x,
                            _magnitude(jnp.reshape(early, (x.shape[0],) + early.shape[2:])))
-        integral = jnp.sum(_magnitude(samples.fx) * samples.weights * jnp.exp(-samples.log_q))
-        mixture = with_modes(mixture, integral, *modes)
+        mixture = with_modes(mixture, jnp.sum(importance_weights(samples)), *modes)
     x, p = mixture.sample(key, size)
     y, _ = ratio(evaluate(f, x, batched), p)
     mean = jnp.mean(y, axis=0)

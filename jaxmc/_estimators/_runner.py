@@ -59,12 +59,10 @@ class Runner:
         default `budget`, allows), then stream from it."""
         adapt_key, key = jax.random.split(key)
         size = adaptation_points(budget if sized_by is None else sized_by)
-        mixture = fixed_for_derivatives(mixture)
         if size:
-            mixture = fixed_for_derivatives(adapted_mixture(
-                adapt_key, mixture, fixed_for_derivatives(draws), f=self.f, size=size,
-                batched=self.batched,
-            ))
+            mixture = adapted_mixture(adapt_key, mixture, draws, f=self.f, size=size,
+                                      batched=self.batched)
+        mixture = fixed_for_derivatives(mixture)  # (the fits' own derivatives: none)
         est = self.block_method("importance", key, budget - size, done + size, frozen=mixture,
                                 chunk=chunk)
         return dataclasses.replace(est, n=est.n + size)

@@ -111,6 +111,12 @@ def _magnitude(values):
     return jnp.sqrt(jnp.sum(jnp.where(jnp.isfinite(y), y, 0) ** 2, axis=-1))
 
 
+def importance_weights(samples):
+    r"""The unnormalised importance weights $|f(x_i)|\,w_i/q(x_i)$ of a round's `samples`:
+    their sum estimates $\int |f|$."""
+    return _magnitude(samples.fx) * samples.weights * jnp.exp(-samples.log_q)
+
+
 def seeded_mixture(grid: Grid, samples) -> Mixture:
     r"""The mixture fitted to a grid's round of `samples` (weights $|f|\,w/q$). At most
     `MIXTURE_FIT_POINTS` of them, a stride apart: a VEGAS+ round lies hypercube by
@@ -118,8 +124,7 @@ def seeded_mixture(grid: Grid, samples) -> Mixture:
     the points."""
     stride = max(1, samples.weights.shape[0] // MIXTURE_FIT_POINTS)
     samples = jax.tree.map(lambda a: a[::stride], samples)
-    weights = _magnitude(samples.fx) * samples.weights * jnp.exp(-samples.log_q)
-    gm, _ = _fitted_gaussians(grid, samples.x, weights, WIDE_MIN_SHARE)
+    gm, _ = _fitted_gaussians(grid, samples.x, importance_weights(samples), WIDE_MIN_SHARE)
     return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE), stratified=True)
 
 
