@@ -15,7 +15,9 @@ $H^{-1}$ of $-\log|f|$ at $m$, its diagonal kept), at most `MODE_COMPONENTS` of
 them, one at a time, each judged against the mixture with the ones before, each in
 place of the fitted Gaussian of least weight.
 Its share of the Gaussians is its Laplace mass against $\hat I$:
-$Z/(\hat I + Z)$, $Z = |f(m)|\,(2\pi)^{d/2}\prod_j s_j$.
+$Z/(\hat I + Z)$, $Z = |f(m)|\,(2\pi)^{d/2}\prod_j s_j$. A mode the grid
+itself undercovers so (`grid_misses_a_mode`) tells `_auto` that the grid's
+figure hides mass it does not sample.
 
 Only an interior maximum counts (a positive definite $H$, finite values): a
 singularity's ascent runs to the boundary, where $-\log|f|$ is concave; a flat
@@ -91,6 +93,24 @@ def find_modes(f, batched, lo, hi, x, magnitude):
     return jax.vmap(ascend)(starts)
 
 
+def log_undercover(density, integral, modes, values, valid):
+    r"""$\log(|f(m)| / (\hat I\,q(m)))$ at each of `modes` `(S, d)` for a density `q` with a
+    `log_pdf` (`-inf` where not `valid`): in logs, since far from `q`'s parts its density
+    underflows (in float32 first)."""
+    integral = jnp.maximum(integral, jnp.finfo(values.dtype).tiny)
+    log_ratio = jnp.log(values) - jnp.log(integral) - density.log_pdf(modes)
+    return jnp.where(valid & ~jnp.isnan(log_ratio), log_ratio, -jnp.inf)
+
+
+def grid_misses_a_mode(grid, integral, modes, values, scales, valid):
+    """Whether one of the `modes` is `UNDERCOVERED` by `grid` itself: the grid then misses
+    mass its figure cannot show (i-flow's 16-D camel: a grid that held one mode of two
+    measured a relative variance per evaluation of 1.3e3, and its stream returned half
+    the truth at 219 standard errors)."""
+    del scales
+    return jnp.any(log_undercover(grid, integral, modes, values, valid) > math.log(UNDERCOVERED))
+
+
 def with_modes(mixture: Mixture, integral, modes, values, scales, valid) -> Mixture:
     """`mixture` with a Gaussian at each of at most `MODE_COMPONENTS` undercovered modes
     (see the module's docstring), each in place of the fitted Gaussian of least weight (the
@@ -99,9 +119,7 @@ def with_modes(mixture: Mixture, integral, modes, values, scales, valid) -> Mixt
     integral = jnp.maximum(integral, jnp.finfo(values.dtype).tiny)
     log_mass = jnp.log(values) + 0.5 * d * math.log(2 * math.pi) + jnp.sum(jnp.log(scales), axis=-1)
     for _ in range(MODE_COMPONENTS):
-        # In logs: far from the mixture's parts its density underflows (in float32 first).
-        log_ratio = jnp.log(values) - jnp.log(integral) - mixture.log_pdf(modes)
-        log_ratio = jnp.where(valid & ~jnp.isnan(log_ratio), log_ratio, -jnp.inf)
+        log_ratio = log_undercover(mixture, integral, modes, values, valid)
         best = jnp.argmax(log_ratio)
         # Z / (I + Z), in logs.
         share = jnp.clip(jax.nn.sigmoid(log_mass[best] - jnp.log(integral)), MIN_SHARE, MAX_SHARE)
