@@ -69,9 +69,9 @@ The candidates:
   15 keys of 24, now the mixture on all, RMS error 1.9e-3 -> 9.8e-4; 5-D
   posterior 6.0e-3 -> 4.3e-3). If the mixture wins, it adapts too, twice:
   refitted to its pilot's points, then to a tenth of the rest of the budget
-  drawn from that refit (`adapted_mixture`: population Monte Carlo; 6-26x lower variance on the
-  posterior, the 16-D camel and the 10-D ball), each refit with a wide Gaussian
-  among its parts that bounds the weights where the fitted ones fall faster than
+  drawn from that refit (`adapted_mixture`: population Monte Carlo; 6-26x lower
+  variance on the posterior, the 16-D camel and the 10-D ball), each refit with
+  a wide Gaussian among its parts that bounds the weights where the fitted ones fall faster than
   $f$ (`_with_wide_gaussian`). What is left streams from it
   (`method="importance"` blocks of `_stream`), to the budget or the tolerance.
 
