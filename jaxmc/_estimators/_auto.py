@@ -71,8 +71,8 @@ The candidates:
   refitted to its pilot's points, then to a tenth of the rest of the budget
   drawn from that refit (`adapted_mixture`: population Monte Carlo; 6-26x lower
   variance on the posterior, the 16-D camel and the 10-D ball), each refit with
-  a wide Gaussian among its parts that bounds the weights where the fitted ones fall faster than
-  $f$ (`_with_wide_gaussian`). What is left streams from it
+  a wide Gaussian among its parts that bounds the weights where the fitted ones
+  fall faster than $f$ (`_with_wide_gaussian`). What is left streams from it
   (`method="importance"` blocks of `_stream`), to the budget or the tolerance.
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
