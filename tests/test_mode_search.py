@@ -105,16 +105,15 @@ def test_a_grid_misses_a_mode_where_its_density_falls_ten_times_short():
     # there; one of sd 0.3 (its peak 0.88 times I) is covered; an invalid mode never counts.
     lo, hi = box(2)
     grid = Grid(lo, hi, bins=8)
-    modes, scales = jnp.full((2, 2), 0.5), jnp.full((2, 2), 0.05)
+    modes = jnp.full((2, 2), 0.5)
     peak_over_integral = jnp.asarray([0.5 / (2 * jnp.pi * 0.05**2), 0.5 / (2 * jnp.pi * 0.3**2)])
     both = jnp.asarray([True, True])
     for integral in (1.0, 1e-3):  # (the ratio, not the scale, decides)
         values = integral * peak_over_integral
-        assert bool(grid_misses_a_mode(grid, integral, modes, values, scales, both))
-        assert not bool(grid_misses_a_mode(grid, integral, modes, values, scales,
+        assert bool(grid_misses_a_mode(grid, integral, modes, values, both))
+        assert not bool(grid_misses_a_mode(grid, integral, modes, values,
                                            jnp.asarray([False, True])))
-        assert not bool(grid_misses_a_mode(grid, integral, modes[1:], values[1:], scales[1:],
-                                           both[1:]))
+        assert not bool(grid_misses_a_mode(grid, integral, modes[1:], values[1:], both[1:]))
 
 
 def test_a_singularity_flat_region_or_ridge_is_no_mode():

@@ -275,11 +275,12 @@ def _mixture_pilot(key, grid, samples, qmc_key, early, *, f, size, batched):
     if searched:
         x = net_points(qmc_key, grid.lo, grid.hi, 0, 1, early.shape[1].bit_length() - 1)
         x = jnp.reshape(x, (-1, x.shape[-1]))
-        modes = find_modes(f, batched, grid.lo, grid.hi, x,
-                           _magnitude(jnp.reshape(early, (x.shape[0],) + early.shape[2:])))
+        modes, values, scales, valid = find_modes(
+            f, batched, grid.lo, grid.hi, x,
+            _magnitude(jnp.reshape(early, (x.shape[0],) + early.shape[2:])))
         integral = jnp.sum(importance_weights(samples))
-        mixture = with_modes(mixture, integral, *modes)
-        grid_misses = grid_misses_a_mode(grid, integral, *modes)
+        mixture = with_modes(mixture, integral, modes, values, scales, valid)
+        grid_misses = grid_misses_a_mode(grid, integral, modes, values, valid)
     x, p = mixture.sample(key, size)
     y, _ = ratio(evaluate(f, x, batched), p)
     mean = jnp.mean(y, axis=0)

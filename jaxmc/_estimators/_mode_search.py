@@ -102,13 +102,11 @@ def log_undercover(density, integral, modes, values, valid):
     return jnp.where(valid & ~jnp.isnan(log_ratio), log_ratio, -jnp.inf)
 
 
-def grid_misses_a_mode(grid, integral, modes, values, scales, valid):
+def grid_misses_a_mode(grid, integral, modes, values, valid):
     """Whether one of the `modes` is `UNDERCOVERED` by `grid` itself: the grid then misses
     mass its figure cannot show (i-flow's 16-D camel: a grid that held one mode of two
     measured a relative variance per evaluation of 1.3e3, and its stream returned half
-    the truth at 219 standard errors). The arguments after `integral` are `find_modes`'s
-    tuple; the scales do not enter."""
-    del scales
+    the truth at 219 standard errors)."""
     return jnp.any(log_undercover(grid, integral, modes, values, valid) > math.log(UNDERCOVERED))
 
 
