@@ -15,12 +15,12 @@ The candidates:
   where it is already plain, else on the whole nets.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
-  $\sigma^2_m$ of its last round, hedged (a geometric mean) with the scatter of
-  its last `SCATTER_ROUNDS` rounds' means where that round's own variance is
-  `SCATTER_TRUST` times above it: a round's variance comes from pairs of points
-  in hypercubes, which a peak the grid has not yet resolved inflates (100-1000x
-  what the grid then realised on a 16-D camel, a 5-D posterior and a corner
-  singularity). A young grid's variance says little of the
+  $\sigma^2_m$ of its last round (`_pilot_grid.grid_rounds`), hedged (a geometric
+  mean) with the scatter of its last `SCATTER_ROUNDS` rounds' means where that
+  round's own variance is `SCATTER_TRUST` times above it: a round's variance
+  comes from pairs of points in hypercubes, which a peak the grid has not yet
+  resolved inflates (100-1000x what the grid then realised on a 16-D camel, a
+  5-D posterior and a corner singularity). A young grid's variance says little of the
   trained one's (measured after 3 and 10 rounds: from 10x worse, on a 16-D
   discontinuity, to 1000x better, on a 5-D posterior), so the grid is dropped
   after `SCREEN_ROUNDS` rounds only when, as it stands, it is `SCREEN_MARGIN`
@@ -32,6 +32,24 @@ The candidates:
   and the choice is made on the trained grid. If the grid wins it goes on
   as `method="adaptive"` does after training (refining rounds, then with a
   tolerance a frozen stream); if QMC wins, the training was the price of knowing.
+- `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$
+  with values $f/q$ (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's
+  pilot's, measured and projected as its are): importance sampling from the
+  grid, with QMC's rate on what is left, $f/q$, flatter and smoother than $f$
+  where the grid fits. It streams as `method="qmc"` does, on the frozen grid.
+  Measured at $10^5$ (16 keys, RMS relative error, against `method="adaptive"`,
+  which starts from the same training): Genz's 8-D corner peak 8.3e-6 against
+  4.4e-4, his 16-D one 3.8e-5 against 4.1e-4, his 8-D continuous 9.6e-6 against
+  4.7e-4, vegas's 4-D Gaussian 1.3e-4 against 2.0e-3, i-flow's 8-D Gaussian
+  2.7e-4 against 1.1e-3. It is a candidate only where it fits: plain Monte
+  Carlo's variance through the grid below `GRID_QMC_MAX_VARIANCE` (a grid that
+  loose goes on adapting, a frozen one does not: the 10-D ball's measured
+  25-170, and QMC through it erred 10x as much as the refined grid), and values
+  $f/q$ with no power-law tail (`QMCFigures.heavy`): there the replicas' spread
+  understates the error, the stream reports the i.i.d. bound instead, and
+  the refining grid's rounds give the tighter honest error bar (x^-1/3 in 6-D
+  and (sum x)^-3/2 in 4-D: 2.5-3x lower actual error through the grid, error bars
+  conservative and flagged; x^-1/2 in 2-D, infinite variance: 2x higher).
 - `"mixture"`: a Gaussian mixture seeded from the trained grid's last round
   (`_seeded_mixture`: `GaussianMixture.from_samples` on the weights $|f|\,w/q$, EM
   towards the density $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed
@@ -79,17 +97,18 @@ The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
 readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
 training and the stratified allocation make a VEGAS+ evaluation of a cheap
 integrand 4-7x dearer than a Sobol' point on a CPU (0.17 s against 0.04 s per
-$10^6$ in 4-D, steady state), and about as dear for an integrand that costs
-more than the map; 3 sits between. A draw from the mixture inverts truncated
-normal CDFs and evaluates both its parts' densities at every point: 0.17-0.74 s
-per $10^6$ in 2-16 D (float64, 8 components, a 256-bin grid), and a whole
-`"auto"` call at $10^6$ that streamed from it took 1.7-2.3x as long as
-`method="adaptive"` on vegas's 4-D and i-flow's 8-D Gaussians (it was 3-5x before
-the grid's density and the truncated normal's table were sped up; 12 was set
-then). 12 keeps the mixture for the large gains (100-1000x on a correlated
-posterior), not close calls. The pilot's evaluations count in the
-result's `n` but not in its mean: the streamed estimate uses fresh randomness,
-independent of the choice, so it stays unbiased.
+$10^6$ in 4-D, steady state), and about as dear for an integrand that costs more
+than the map; 3 sits between. A Sobol' point carried through the grid's map cost
+2.4-4x a bare one ($10^6$ points in 4-16 D, cheap integrands): 2. A draw from
+the mixture inverts truncated normal CDFs and evaluates both its parts'
+densities at every point: 0.17-0.74 s per $10^6$ in 2-16 D (float64, 8
+components, a 256-bin grid), and a whole `"auto"` call at $10^6$ that streamed
+from it took 1.7-2.3x as long as `method="adaptive"` on vegas's 4-D and i-flow's
+8-D Gaussians (it was 3-5x before the grid's density and the truncated normal's
+table were sped up; 12 was set then). 12 keeps the mixture for the large gains
+(100-1000x on a correlated posterior), not close calls. The pilot's evaluations
+count in the result's `n` but not in its mean: the streamed estimate uses fresh
+randomness, independent of the choice, so it stays unbiased.
 """
 from __future__ import annotations
 
@@ -99,10 +118,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import is_concrete
-from .._diagnostics import bounded_variance, tail_of
 from .._format import concrete, number
 from .._integrand import evaluate, ratio
-from ..fit import Integrand, VegasPlus, run_adaptation
 from ..proposals import Grid
 from ._adaptive import grid_bins
 from ._mode_search import (
@@ -112,6 +129,7 @@ from ._mode_search import (
     search_evaluations,
     with_modes,
 )
+from ._pilot_grid import grid_qmc_pilot, grid_rounds
 from ._pilot_nets import (
     EARLY_MARGIN,
     MAX_NET_GROWTH,
@@ -127,9 +145,9 @@ from ._plan import QMC_REPLICAS, final_net
 from ._seeded_mixture import _magnitude, importance_weights, seeded_mixture
 
 
-CANDIDATES = ("qmc", "adaptive", "mixture")
+CANDIDATES = ("qmc", "adaptive", "grid_qmc", "mixture")
 # Time per evaluation, relative to a Sobol' point.
-RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "mixture": 12.0}
+RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "grid_qmc": 2.0, "mixture": 12.0}
 MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
 # The mixture is a candidate only below this relative variance per evaluation, where
 # its effective sample size n / (1 + v) is above n / 10 (`diagnostics.HEAVY_TAIL_ESS_SHARE`).
@@ -152,19 +170,6 @@ SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full t
 # grid's fall from its first round to its third said nothing of the rest (extrapolated, it
 # promised 1e-5 of QMC's cost on 8-D discontinuities that it ended at 10-300x).
 SCREEN_MARGIN = 3.0
-# The trained grid's figure: its last round's variance, unless that is SCATTER_TRUST times
-# the scatter of the last SCATTER_ROUNDS rounds' means; then the geometric mean of the two.
-# A round's variance is a sum over hypercubes of two or three points each: on a peak the
-# grid has not yet resolved, a few hypercubes' pairs carry it. Measured at 1e6 (4 keys;
-# relative variance per evaluation): last round / scatter / what `method="adaptive"` then
-# realised: i-flow camel 16-D 3e5-2e6 / 47-1000 / 376; 5-D posterior 550-1400 / 3-220 /
-# 2.6; 4-D corner singularity 0.35-0.5 / 0.001-0.013 / 0.009; elsewhere within 3x of each
-# other. But the scatter of 5 rounds has 4 degrees of freedom: an honest round variance is
-# 10x its scatter in 1.7% of runs (chi-square), 30x in 0.2%; at 10x, 2 of the `auto`
-# benchmark's 660 runs (vegas's 4-D Gaussian, the 3-D ball) left the mixture or QMC for a
-# grid that then erred 5x as much. Hence 30x, and the geometric mean.
-SCATTER_ROUNDS = 5
-SCATTER_TRUST = 30.0
 
 
 class Pilot(eqx.Module):
@@ -188,8 +193,8 @@ class Pilot(eqx.Module):
 
     def __repr__(self) -> str:
         """`Pilot(choice='adaptive', qmc=(variance 2.63, cost 2.63, 5120 evaluations), ...)`:
-        each candidate's figures (`inf`: blind, unfitted, too loose a fit to compete, or a
-        grid that misses a mode the mixture holds);
+        each candidate's figures (`inf`: blind, unfitted, too loose a fit to compete, values
+        with a power-law tail through the grid, or a grid that misses a mode the mixture holds);
         equinox's repr (shapes and dtypes) when traced, or batched under `vmap`."""
         if not concrete(self) or jnp.ndim(self.choice) != 0:
             return eqx.Module.__repr__(self)
@@ -230,36 +235,6 @@ def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched
     qmc = measure_nets(jnp.concatenate([early, rest], axis=1), growth, clear_win_gain(per_replica))
     qmc = eqx.tree_at(lambda q: q.clear_win, qmc, qmc.clear_win | early_win)
     return qmc, _alone(qmc, per_replica * QMC_REPLICAS)
-
-
-@eqx.filter_jit
-def grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
-    """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
-    skipped, so one compiled program serves the screening and the training stage: ~1.5 s
-    of a first call): the last round's relative variance per evaluation, whether it saw
-    only zeros, the state after it and its `Samples`."""
-    # The rounds skip their diagnostics: only the last one's variance is read, bounded here
-    # from its values as its diagnostics would have bounded it.
-    parts, state, samples = run_adaptation(
-        VegasPlus(diagnostics=False), key, Integrand(f, batched), grid, rounds, round_size,
-        keep_samples=True, active=active,
-    )
-    last = active - 1
-    values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
-    variance, _ = bounded_variance(parts.variance[last], parts.mean[last], tail_of(values))
-    v_last = relative_variance(parts.mean[last], variance) * round_size
-    # The scatter of the last SCATTER_ROUNDS rounds' means (the spread `method="adaptive"`
-    # reports its error from), where the last round's own variance is far above it.
-    index = jnp.arange(rounds)
-    recent = (index > last - SCATTER_ROUNDS) & (index <= last)
-    shape = (rounds,) + (1,) * (parts.mean.ndim - 1)
-    weight = jnp.reshape(recent, shape).astype(parts.mean.dtype) / SCATTER_ROUNDS
-    centre = jnp.sum(weight * parts.mean, axis=0)
-    spread = jnp.sum(weight * (parts.mean - centre) ** 2, axis=0) * SCATTER_ROUNDS / (SCATTER_ROUNDS - 1)
-    v_scatter = relative_variance(centre, spread) * round_size
-    heavy = (active >= SCATTER_ROUNDS) & (v_last > SCATTER_TRUST * v_scatter)
-    hedged = jnp.sqrt(v_last * v_scatter)  # the scatter of 5 rounds is itself uncertain
-    return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0), state, samples
 
 
 @eqx.filter_jit
@@ -309,9 +284,9 @@ def _choose(qmc: QMCFigures, variance, blind):
     return variance, cost, choice.astype(jnp.int32)
 
 
-def _first_two(choice):
-    """`(variance, cost, choice)` restricted to QMC and the grid."""
-    return tuple(a[:2] if a.ndim else a for a in choice)
+def _first(choice, k):
+    """`(variance, cost, choice)` restricted to the first `k` candidates."""
+    return tuple(a[:k] if a.ndim else a for a in choice)
 
 
 # The decisions between the pilot's stages, each one compiled program (run eagerly, their
@@ -320,38 +295,46 @@ def _first_two(choice):
 def _screen(qmc: QMCFigures, v_grid, grid_blind):
     """QMC against the young grid: `(the choice, the choice restricted to the two, whether
     the young grid is dropped)`."""
-    # The mixture is not seeded from a young grid: its variance counts as unknown here.
-    screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
-                       jnp.stack([qmc.blind, grid_blind, True]))
+    # Nothing is carried through a young grid, nor seeded from it: unknown here.
+    screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf, jnp.inf]),
+                       jnp.stack([qmc.blind, grid_blind, True, True]))
     # Dropped only if SCREEN_MARGIN times costlier than QMC as it stands, and never under a
     # power-law tail: there a young grid's rounds are as heavy-tailed as QMC's values, and
     # their variances say nothing of the trained grid's (x^-1/2 in 2-D at 1e6: 35-110
     # after 3 rounds, 0.4-0.6 after 10, against QMC's 5-7 credited as plain MC).
-    qmc_cost, grid_cost, _ = screened[1]
+    qmc_cost, grid_cost = screened[1][:2]
     decided = (grid_cost > SCREEN_MARGIN * qmc_cost) & ~qmc.blind & ~qmc.heavy
-    return screened, _first_two(screened), decided
+    return screened, _first(screened, 2), decided
 
 
 @eqx.filter_jit
-def _after_training(qmc: QMCFigures, v_grid, grid_blind, screened, decided):
-    """QMC against the trained grid (the screened choice where the grid was dropped), and
-    whether either already costs less than any mixture measured would (`MIXTURE_FLOOR`)."""
-    two = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf]),
-                  jnp.stack([qmc.blind, grid_blind, True]))
-    beaten = ~decided & (jnp.min(two[1]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
-    two = tuple(jnp.where(decided, a, b) for a, b in zip(_first_two(screened), _first_two(two)))
-    return two, beaten
+def _after_training(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, screened,
+                    decided):
+    """QMC, the trained grid and QMC through it (the screened choice where the grid was
+    dropped), and whether QMC or the grid already costs less than any mixture measured
+    would (`MIXTURE_FLOOR`). Not QMC through the grid: on a grid that holds one of two
+    separated peaks $f/q$ is smooth and its figure low, and only the mixture's pilot
+    searches for the peak it misses (i-flow's 16-D camel at 1e5: one key of 10 took it
+    and returned half the truth, before this)."""
+    three = _choose(qmc, jnp.stack([qmc.variance, v_grid, grid_qmc.variance, jnp.inf]),
+                    jnp.stack([qmc.blind, grid_blind, grid_blind | grid_qmc.blind, True]))
+    beaten = ~decided & (jnp.min(three[1][:2]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
+    three = tuple(jnp.where(decided, a, b) for a, b in zip(_first(screened, 3), _first(three, 3)))
+    return three, beaten
 
 
 @eqx.filter_jit
-def _with_mixture(qmc: QMCFigures, v_grid, grid_blind, v_mixture, mixture_blind, grid_misses,
-                  screened, decided):
-    """The three candidates after training (the screened choice where the grid was dropped);
-    a grid that misses a mode the mixture holds (`grid_misses`) is none."""
+def _with_mixture(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, v_mixture,
+                  mixture_blind, grid_misses, screened, decided):
+    """The four candidates after training (the screened choice where the grid was dropped);
+    a grid that misses a mode the mixture holds (`grid_misses`) is none, nor QMC through it."""
     measured = jnp.isfinite(v_mixture) & ~mixture_blind
-    v_grid = jnp.where(grid_misses & measured, jnp.inf, v_grid)
-    trained = _choose(qmc, jnp.stack([qmc.variance, v_grid, v_mixture]),
-                      jnp.stack([qmc.blind, grid_blind, grid_blind | mixture_blind]))
+    misses = grid_misses & measured
+    v_grid = jnp.where(misses, jnp.inf, v_grid)
+    v_grid_qmc = jnp.where(misses, jnp.inf, grid_qmc.variance)
+    trained = _choose(qmc, jnp.stack([qmc.variance, v_grid, v_grid_qmc, v_mixture]),
+                      jnp.stack([qmc.blind, grid_blind, grid_blind | grid_qmc.blind,
+                                 grid_blind | mixture_blind]))
     return tuple(jnp.where(decided, a, b) for a, b in zip(screened, trained))
 
 
@@ -374,8 +357,9 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a 5-D
     posterior), so the choice is made on the trained grid unless the young one,
     as it stands, is `SCREEN_MARGIN` times costlier than QMC.
+    QMC through the trained grid is measured on nets as large as QMC's pilot's.
     The mixture is seeded from the trained grid and measured on at most
-    `MIXTURE_PILOT_POINTS` points, unless QMC or the grid already costs less than
+    `MIXTURE_PILOT_POINTS` points, unless another candidate already costs less than
     a mixture at `MIXTURE_FLOOR` would, in one dimension (a grid there is any
     piecewise-constant density). With a tolerance too: on the 5-D posterior at
     `rtol=1e-3` (32 keys) the refitted mixture with its wide part met it in 0.82M
@@ -431,18 +415,25 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     # The search for modes the mixture missed is budgeted whether or not it runs (it needs
     # the integrand's gradients; as a shortcut's, its evaluations are then left unspent).
     search_n = search_evaluations(lo.size) if mixture_n else 0
-    trained_rest = budget - qmc_n - rounds * round_size - mixture_n - search_n
-    # No mixture measured so far has gone below MIXTURE_FLOOR: when QMC or the grid already
-    # costs less than such a mixture would, it is not fitted (outside jit only).
-    (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, screened, decided)
+    grid_qmc_n = qmc_n  # QMC through the trained grid: nets as large as QMC's pilot's
+    trained_rest = budget - qmc_n - rounds * round_size - grid_qmc_n - mixture_n - search_n
+    grid_qmc = grid_qmc_pilot(  # (on a key of its own)
+        jax.random.fold_in(key_train, 1), state.grid, f=f, per_replica=per_replica,
+        growth=min(final_net(trained_rest) / per_replica, MAX_NET_GROWTH), batched=batched,
+    )
+    trained_n = (qmc_n, rounds * round_size, grid_qmc_n)
+    # No mixture measured so far has gone below MIXTURE_FLOOR: when another candidate
+    # already costs less than such a mixture would, it is not fitted (outside jit only).
+    (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, grid_qmc,
+                                                       screened, decided)
     if mixture_n == 0 or (is_concrete(beaten) and bool(beaten)):
-        pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, rounds * round_size))
+        pilot = Pilot(CANDIDATES[:3], variance, cost, choice, trained_n)
         return pilot, state, None, trained_rest
     v_mixture, mixture_blind, mixture, draws, searched, grid_misses = _mixture_pilot(
         key_mixture, state.grid, samples, key_qmc, early, f=f, size=mixture_n, batched=batched
     )
-    variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, v_mixture, mixture_blind,
-                                           grid_misses, screened, decided)
-    evaluations = (qmc_n, rounds * round_size, mixture_n + (search_n if searched else 0))
+    variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, grid_qmc, v_mixture,
+                                           mixture_blind, grid_misses, screened, decided)
+    evaluations = trained_n + (mixture_n + (search_n if searched else 0),)
     pilot = Pilot(CANDIDATES, variance, cost, choice, evaluations)
     return pilot, state, (mixture, draws), trained_rest

@@ -111,12 +111,13 @@ def integrate(
           evaluation — randomised QMC on at most 1/16 of the budget, then,
           unless QMC already beats plain MC 15-30-fold on the same points (a
           smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
-          it trains (at most a quarter) and a mixture of Gaussians seeded
-          from the trained grid, with one more at each mode the grid missed
-          that an ascent of $\log|f|$ from QMC's best points found (where JAX
-          can differentiate `f`; `est.method` `"mixture"`, refitted to its own
-          points when it wins, then streamed as importance sampling) — and
-          spends the rest on the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
+          it trains (at most a quarter), QMC's nets carried through the
+          trained grid's map (`est.method` `"grid_qmc"`) and a mixture of
+          Gaussians seeded from the trained grid, with one more at each mode
+          the grid missed that an ascent of $\log|f|$ from QMC's best points
+          found (where JAX can differentiate `f`; `est.method` `"mixture"`,
+          refitted to its own points when it wins, then streamed as
+          importance sampling) — and spends the rest on the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
           for the rules); `est.method` names the winner and `est.pilot` keeps
           the figures. The pilot's evaluations count in `n` but not in the
           mean, which stays unbiased.
@@ -264,6 +265,8 @@ def integrate(
             lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
             lambda: run.trained_grid(key, rest, state, block, spent),
+            # Scrambled Sobol' nets through the trained grid's map.
+            lambda: run.qmc(key, rest, spent, grid=state.grid),
             # Importance sampling from the mixture the pilot seeded from the grid (refitted
             # on a tenth of what the budget that sized the pilot left).
             lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk, sized_rest),

@@ -94,21 +94,27 @@ class QMCFigures(eqx.Module):
     clear_win: jax.Array  # QMC beats plain MC on its points by `clear_win_gain`
     blind: jax.Array  # saw nothing, or too few effective points to measure anything
     heavy: jax.Array  # the values have a power-law tail (Pareto k-hat > 0.2)
+    plain: jax.Array  # plain MC's relative variance per evaluation, on the same points
 
 
-def net_points(key, lo, hi, first, blocks, log2_block):
-    """Points `(QMC_REPLICAS, blocks * 2**log2_block, d)` (or without `d` in one dimension)
-    of blocks `first`, ..., `first + blocks - 1` of `2**log2_block` points of the pilot's
-    scrambled Sobol' nets (one scramble per replica, from `key`), in the box."""
-    d = 1 if lo.ndim == 0 else lo.shape[0]
+def _net_units(key, d, dtype, first, blocks, log2_block):
+    """Points `(QMC_REPLICAS, blocks * 2**log2_block, d)` on $[0,1)^d$: blocks `first`, ...,
+    `first + blocks - 1` of `2**log2_block` points of the pilot's scrambled Sobol' nets (one
+    scramble per replica, from `key`)."""
 
     def replica(k):
         scramble = sobol_scramble(k, d)
-        u = jnp.concatenate([replica_points(scramble, first + b, log2_block, lo.dtype)
-                             for b in range(blocks)])
-        return to_box(u if lo.ndim else u[:, 0], lo, hi)
+        return jnp.concatenate([replica_points(scramble, first + b, log2_block, dtype)
+                                for b in range(blocks)])
 
     return jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
+
+
+def net_points(key, lo, hi, first, blocks, log2_block):
+    """`_net_units` in the box `(QMC_REPLICAS, m, d)` (or without `d` in one dimension)."""
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    u = _net_units(key, d, lo.dtype, first, blocks, log2_block)
+    return jax.vmap(lambda ur: to_box(ur if lo.ndim else ur[:, 0], lo, hi))(u)
 
 
 def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
@@ -116,6 +122,18 @@ def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
     x = net_points(key, lo, hi, first, blocks, log2_block)
     volume = jnp.prod(hi - lo)
     return jax.vmap(lambda xr: ratio(evaluate(f, xr, batched), 1 / volume)[0])(x)
+
+
+def grid_net_values(key, grid, f, batched, log2_size):
+    r"""The values $f/q$ `(QMC_REPLICAS, 2**log2_size, ...)` of whole scrambled Sobol' nets
+    carried through a VEGAS `grid`'s map ($x = G(u)$, $q$ the grid's density)."""
+    u = _net_units(key, grid.dim, grid.lo.dtype, 0, 1, log2_size)
+
+    def replica(ur):
+        x, log_q = grid.map(ur)
+        return ratio(evaluate(f, x if grid.event_ndim else x[:, 0], batched), jnp.exp(log_q))[0]
+
+    return jax.vmap(replica)(u)
 
 
 def measure_nets(y, growth, bar):
@@ -155,4 +173,4 @@ def measure_nets(y, growth, bar):
     projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
     blind = jnp.all(mean == 0) | ~measured
     clear_win = (plain >= bar * full) & measured & ~heavy
-    return QMCFigures(projected, clear_win, blind, heavy)
+    return QMCFigures(projected, clear_win, blind, heavy, plain)

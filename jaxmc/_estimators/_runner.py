@@ -21,7 +21,7 @@ from ._adaptive import (
     train_vegas_plus,
     training_rounds,
 )
-from ._auto import grid_rounds
+from ._pilot_grid import grid_rounds
 from ._plan import ADAPTIVE_PROBE_REACH, PROBE_BUDGET, plan
 from ._seeded_mixture import adaptation_points, adapted_mixture
 from ._stream import stream_on_mesh
@@ -50,8 +50,11 @@ class Runner:
                         tolerant=self.tolerant)
         return self._stream(key, frozen, run_plan, done)
 
-    def qmc(self, key, budget, done=0):
-        return self.block_method("qmc", key, budget, done)
+    def qmc(self, key, budget, done=0, grid=None):
+        """Randomised QMC: scrambled Sobol' nets, carried through a trained `grid`'s map if
+        given (importance sampling from it, its density fixed for derivatives)."""
+        frozen = None if grid is None else fixed_for_derivatives(grid)
+        return self.block_method("qmc", key, budget, done, frozen=frozen)
 
     def mixture(self, key, budget, done, mixture, draws, chunk, sized_by=None):
         """Refit auto's winning `mixture` to its pilot's `draws` and to points of its own

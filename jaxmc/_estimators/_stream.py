@@ -21,6 +21,8 @@ Three kinds of statistical unit are used:
   block is one independent randomisation (an unbiased estimate on its own) and
   the variance comes from the spread of the block means.
 - Randomised QMC keeps $R$ *replicas*, each one scrambled Sobol' sequence
+  (carried through a trained VEGAS grid's map when `frozen` is one: `"auto"`'s
+  `"grid_qmc"`, values $f(G(u))/q(G(u))$)
   walked block by block (block $b$ is block $\lfloor b/R \rfloor$ of replica
   $b \bmod R$). After $m$ blocks per replica each replica's mean is over the
   first $m B$ points of its sequence — at powers of two a whole $(t, s, d)$-net,
@@ -151,6 +153,9 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         if method == "qmc":
             r, position = b % plan.replicas, b // plan.replicas
             u = replica_points((scrambles[0][r], scrambles[1][r]), position, log2_block, dtype)
+            if frozen is not None:  # scrambled nets through a trained grid's map
+                x, log_p = frozen.map(u)
+                return (x if frozen.event_ndim else x[:, 0]), jnp.exp(log_p)
         elif method == "plain":
             u = unit_points("uniform", jax.random.fold_in(key, b), plan.block, d, dtype=dtype)
         else:

@@ -1,0 +1,71 @@
+r"""The VEGAS+ grid in `integrate(method="auto")`'s pilot: its training rounds, measured
+(`grid_rounds`), and QMC's nets carried through the trained grid (`grid_qmc_pilot`)."""
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._diagnostics import bounded_variance, tail_of
+from .._integrand import ratio
+from ..fit import Integrand, VegasPlus, run_adaptation
+from ._pilot_nets import grid_net_values, measure_nets, relative_variance
+
+
+# The trained grid's figure: its last round's variance, unless that is SCATTER_TRUST times
+# the scatter of the last SCATTER_ROUNDS rounds' means; then the geometric mean of the two.
+# A round's variance is a sum over hypercubes of two or three points each: on a peak the
+# grid has not yet resolved, a few hypercubes' pairs carry it. Measured at 1e6 (4 keys;
+# relative variance per evaluation): last round / scatter / what `method="adaptive"` then
+# realised: i-flow camel 16-D 3e5-2e6 / 47-1000 / 376; 5-D posterior 550-1400 / 3-220 /
+# 2.6; 4-D corner singularity 0.35-0.5 / 0.001-0.013 / 0.009; elsewhere within 3x of each
+# other. But the scatter of 5 rounds has 4 degrees of freedom: an honest round variance is
+# 10x its scatter in 1.7% of runs (chi-square), 30x in 0.2%; at 10x, 2 of the `auto`
+# benchmark's 660 runs (vegas's 4-D Gaussian, the 3-D ball) left the mixture or QMC for a
+# grid that then erred 5x as much. Hence 30x, and the geometric mean.
+SCATTER_ROUNDS = 5
+SCATTER_TRUST = 30.0
+# QMC through the grid is a candidate only below this relative variance per evaluation of
+# plain MC through it: as `_auto.MIXTURE_MAX_VARIANCE`, an effective sample size above n/10.
+GRID_QMC_MAX_VARIANCE = 9.0
+
+
+@eqx.filter_jit
+def grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
+    """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
+    skipped, so one compiled program serves the screening and the training stage: ~1.5 s
+    of a first call): the last round's relative variance per evaluation, whether it saw
+    only zeros, the state after it and its `Samples`."""
+    # The rounds skip their diagnostics: only the last one's variance is read, bounded here
+    # from its values as its diagnostics would have bounded it.
+    parts, state, samples = run_adaptation(
+        VegasPlus(diagnostics=False), key, Integrand(f, batched), grid, rounds, round_size,
+        keep_samples=True, active=active,
+    )
+    last = active - 1
+    values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
+    variance, _ = bounded_variance(parts.variance[last], parts.mean[last], tail_of(values))
+    v_last = relative_variance(parts.mean[last], variance) * round_size
+    # The scatter of the last SCATTER_ROUNDS rounds' means (the spread `method="adaptive"`
+    # reports its error from), where the last round's own variance is far above it.
+    index = jnp.arange(rounds)
+    recent = (index > last - SCATTER_ROUNDS) & (index <= last)
+    shape = (rounds,) + (1,) * (parts.mean.ndim - 1)
+    weight = jnp.reshape(recent, shape).astype(parts.mean.dtype) / SCATTER_ROUNDS
+    centre = jnp.sum(weight * parts.mean, axis=0)
+    spread = jnp.sum(weight * (parts.mean - centre) ** 2, axis=0) * SCATTER_ROUNDS / (SCATTER_ROUNDS - 1)
+    v_scatter = relative_variance(centre, spread) * round_size
+    heavy = (active >= SCATTER_ROUNDS) & (v_last > SCATTER_TRUST * v_scatter)
+    hedged = jnp.sqrt(v_last * v_scatter)  # the scatter of 5 rounds is itself uncertain
+    return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0), state, samples
+
+
+@eqx.filter_jit
+def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
+    """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points through the trained
+    `grid`'s map, measured as QMC's pilot is (`measure_nets`, projected to nets `growth`
+    times larger): `QMCFigures` (its `clear_win` unused)."""
+    y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
+    figures = measure_nets(y, growth, jnp.inf)
+    loose = figures.plain > GRID_QMC_MAX_VARIANCE
+    variance = jnp.where(loose | figures.heavy, jnp.inf, figures.variance)
+    return eqx.tree_at(lambda q: q.variance, figures, variance)
