@@ -149,21 +149,21 @@ def _scaled_peak(x, a):
 
 
 def _scaled_broad_peak(x, a):
-    """`a` times i-flow's 8-D Gaussian (sd 0.2 / sqrt(2) at the centre): integral 0.9967 a."""
-    return a * jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.2**2) / (0.2 * jnp.sqrt(jnp.pi)) ** 8
+    """`a` times a normalised 4-D Gaussian of sd 0.1 / sqrt(2) at the centre: integral `a`
+    (to ~1e-11)."""
+    return a * jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.1**2) / (0.1 * jnp.sqrt(jnp.pi)) ** 4
 
 
-@pytest.mark.parametrize("method, choice, f, d, per_a", [
-    ("auto", 3, _scaled_peak, 4, 1.0), ("auto", 2, _scaled_broad_peak, 8, math.erf(2.5) ** 8),
-    ("adaptive", None, _scaled_peak, 4, 1.0),
+@pytest.mark.parametrize("method, choice, f", [
+    ("auto", 3, _scaled_peak), ("auto", 2, _scaled_broad_peak), ("adaptive", None, _scaled_peak),
 ])
-def test_derivatives_hold_fitted_densities_fixed(method, choice, f, d, per_a):
+def test_derivatives_hold_fitted_densities_fixed(method, choice, f):
     # On a narrow peak auto streams from its mixture (choice 3), on a broad one QMC through
     # its grid (choice 2), and "adaptive" from its grid: all fitted to the integrand's values.
     # The derivative holds them fixed, sum_i w_i df/da(x_i) / q(x_i), an unbiased estimate of
     # dI/da: for f = a * peak it is the estimate over a. Through the fits (EM's weights |f|,
     # VEGAS's histograms) it was NaN where f underflowed to 0.
-    lo, hi = jnp.zeros(d), jnp.ones(d)
+    lo, hi = jnp.zeros(4), jnp.ones(4)
 
     def run(a):
         est = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=100_000, method=method, args=a)
@@ -172,7 +172,7 @@ def test_derivatives_hold_fitted_densities_fixed(method, choice, f, d, per_a):
     (value, chosen), grad = jax.value_and_grad(run, has_aux=True)(2.0)
     assert chosen == choice
     np.testing.assert_allclose(grad, value / 2, rtol=1e-10)
-    assert abs(float(value) / (2 * per_a) - 1) < 0.005
+    assert abs(float(value) - 2) < 0.01
 
 
 def test_fit_and_adapt_reuse_their_compiled_code(key):
