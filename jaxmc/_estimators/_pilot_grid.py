@@ -63,7 +63,10 @@ def grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
 def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points through the trained
     `grid`'s map, measured as QMC's pilot is (`measure_nets`, projected to nets `growth`
-    times larger): `QMCFigures` (its `clear_win` unused)."""
+    times larger): `QMCFigures` (its `clear_win` unused), the variance `inf` where the grid
+    fits loosely (plain MC's through it above `GRID_QMC_MAX_VARIANCE`: the grid goes on
+    adapting, QMC through it would not) or $f/q$ has a power-law tail (the replicas' spread
+    understates, the refining grid gives the tighter honest error bar; see `_auto`)."""
     y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
     figures = measure_nets(y, growth, jnp.inf)
     loose = figures.plain > GRID_QMC_MAX_VARIANCE
