@@ -102,9 +102,9 @@ than the map; 3 sits between. A Sobol' point carried through the grid's map cost
 2.4-4x a bare one ($10^6$ points in 4-16 D, cheap integrands): 2. A draw from
 the mixture inverts truncated normal CDFs and evaluates both its parts'
 densities at every point: 0.17-0.74 s per $10^6$ in 2-16 D (float64, 8
-components, a 256-bin grid), and a whole `"auto"` call at $10^6$ that streamed
-from it took 1.7-2.3x as long as `method="adaptive"` on vegas's 4-D and i-flow's
-8-D Gaussians (it was 3-5x before the grid's density and the truncated normal's
+components, a 256-bin grid), and a whole `"auto"` call at $10^6$ that
+streamed from it took 1.7-2.3x as long as `method="adaptive"` on vegas's 4-D
+and i-flow's 8-D Gaussians (it was 3-5x before the grid's density and the truncated normal's
 table were sped up; 12 was set then). 12 keeps the mixture for the large gains
 (100-1000x on a correlated posterior), not close calls. The pilot's evaluations
 count in the result's `n` but not in its mean: the streamed estimate uses fresh
