@@ -117,10 +117,11 @@ def integrate(
           the grid missed that an ascent of $\log|f|$ from QMC's best points
           found (where JAX can differentiate `f`; `est.method` `"mixture"`,
           refitted to its own points when it wins, then streamed as
-          importance sampling) — and spends the rest on the cheapest per unit of variance (see `jaxmc/_estimators/_auto.py`
-          for the rules); `est.method` names the winner and `est.pilot` keeps
-          the figures. The pilot's evaluations count in `n` but not in the
-          mean, which stays unbiased.
+          importance sampling) — and spends the rest on the cheapest per
+          unit of variance (see `jaxmc/_estimators/_auto.py` for the rules);
+          `est.method` names the winner and `est.pilot` keeps the figures.
+          The pilot's evaluations count in `n` but not in the mean, which
+          stays unbiased.
         - `"qmc"`: randomised QMC that keeps its convergence rate:
           $R$ independently scrambled Sobol' sequences, each walked block by
           block as one growing net; the mean is their average and the variance
