@@ -38,8 +38,9 @@ def main(port: int, processes: int, index: int) -> None:
 
     import jaxmc
 
-    def f(x):  # a narrow peak: method="auto" picks the mixture seeded from the grid
-        return jnp.exp(-200.0 * jnp.sum((x - 0.3) ** 2))
+    def f(x):  # a ridge along the diagonal: method="auto" picks the mixture seeded from the grid
+        y = x - 0.5
+        return jnp.exp(-500.0 * (jnp.sum(y**2) - jnp.sum(y) ** 2 / 3) - 10.0 * jnp.sum(y) ** 2)
 
     lo, hi = jnp.zeros(3), jnp.ones(3)
     results = {"devices": len(jax.devices()), "processes": jax.process_count()}

@@ -179,6 +179,29 @@ def test_vegas_plus_rounds_without_diagnostics(key):
     assert np.any(np.asarray(quick.variance) < np.asarray(parts.variance))  # the bound acted
 
 
+def test_coarse_vegas_plus_runs_the_coarse_grid_held_in_more_bins(key):
+    """`VegasPlus(coarse_bins=M, coarse=True)` on a grid of 4M bins runs the rounds of a grid
+    of M bins (the same map, so the same points, means and edges at every fourth), with
+    `coarse` traced or not; `coarse=False` refines all 4M; `M` must divide the bins."""
+    rounds = lambda rule, bins: run_adaptation(  # noqa: E731
+        rule, key, Integrand(two_peaks), Grid(LO, HI, bins), 4, 1024)
+    parts, state, _ = rounds(VegasPlus(), 16)
+    held, held_state, _ = rounds(VegasPlus(coarse_bins=16, coarse=True), 64)
+    np.testing.assert_allclose(held.mean, parts.mean, rtol=1e-12)
+    np.testing.assert_allclose(held_state.grid.edges[:, ::4], state.grid.edges, atol=1e-12)
+    widths = np.reshape(np.diff(np.asarray(held_state.grid.edges)), (D, 16, 4))
+    np.testing.assert_allclose(widths, widths[..., :1] * np.ones(4), rtol=1e-9)  # split evenly
+    traced = eqx.filter_jit(lambda flag: rounds(VegasPlus(coarse_bins=16, coarse=flag), 64))
+    for flag, (expected, expected_state) in ((True, (held, held_state)),
+                                             (False, rounds(VegasPlus(), 64)[:2])):
+        got, got_state, _ = traced(jnp.asarray(flag))
+        np.testing.assert_allclose(got.mean, expected.mean, rtol=1e-12)
+        np.testing.assert_allclose(got_state.grid.logits, expected_state.grid.logits, atol=1e-9)
+        assert bool(got_state.coarse) == flag
+    with pytest.raises(ValueError, match="coarse_bins"):
+        rounds(VegasPlus(coarse_bins=24, coarse=True), 64)
+
+
 def test_chain_seeds_a_mixture_from_the_grid(key):
     """VEGAS+ finds the peaks; a mixture seeded from its weighted samples puts a component on
     each, is refitted, and the combined estimate of every kept round is unbiased and beats the

@@ -154,11 +154,18 @@ def _scaled_broad_peak(x, a):
     return a * jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.1**2) / (0.1 * jnp.sqrt(jnp.pi)) ** 4
 
 
+def _scaled_two_peaks(x, a):
+    """`a` times the mean of two normalised 4-D Gaussians of sd 0.03 at 1/3 and 2/3: integral
+    `a` (to ~1e-20)."""
+    return (_scaled_peak(x + 0.3 - 1 / 3, a) + _scaled_peak(x + 0.3 - 2 / 3, a)) / 2
+
+
 @pytest.mark.parametrize("method, choice, f", [
-    ("auto", 3, _scaled_peak), ("auto", 2, _scaled_broad_peak), ("adaptive", None, _scaled_peak),
+    ("auto", 3, _scaled_two_peaks), ("auto", 2, _scaled_broad_peak),
+    ("adaptive", None, _scaled_peak),
 ])
 def test_derivatives_hold_fitted_densities_fixed(method, choice, f):
-    # On a narrow peak auto streams from its mixture (choice 3), on a broad one QMC through
+    # On two narrow peaks auto streams from its mixture (choice 3), on a broad one QMC through
     # its grid (choice 2), and "adaptive" from its grid: all fitted to the integrand's values.
     # The derivative holds them fixed, sum_i w_i df/da(x_i) / q(x_i), an unbiased estimate of
     # dI/da: for f = a * peak it is the estimate over a. Through the fits (EM's weights |f|,

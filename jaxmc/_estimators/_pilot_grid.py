@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from .._diagnostics import bounded_variance, tail_of
 from .._integrand import ratio
 from ..fit import Integrand, VegasPlus, run_adaptation
+from ._adaptive import grid_bins
 from ._pilot_nets import grid_net_values, measure_nets, relative_variance
 
 
@@ -30,16 +31,18 @@ GRID_QMC_MAX_VARIANCE = 9.0
 
 
 @eqx.filter_jit
-def grid_rounds(key, grid, active, *, f, rounds, round_size, batched):
+def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
     """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
     skipped, so one compiled program serves the screening and the training stage: ~1.5 s
     of a first call): the last round's relative variance per evaluation, whether it saw
-    only zeros, the state after it and its `Samples`."""
+    only zeros, the state after it and its `Samples`. With `coarse` (may be traced), a grid
+    of more bins than `grid_bins(round_size)` is refined at that many (`VegasPlus.coarse`)."""
     # The rounds skip their diagnostics: only the last one's variance is read, bounded here
     # from its values as its diagnostics would have bounded it.
+    rule = VegasPlus(diagnostics=False, coarse_bins=grid_bins(round_size), coarse=coarse)
     parts, state, samples = run_adaptation(
-        VegasPlus(diagnostics=False), key, Integrand(f, batched), grid, rounds, round_size,
-        keep_samples=True, active=active,
+        rule, key, Integrand(f, batched), grid, rounds, round_size, keep_samples=True,
+        active=active,
     )
     last = active - 1
     values, _ = ratio(samples.fx, jnp.exp(samples.log_q))

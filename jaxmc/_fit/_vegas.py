@@ -169,11 +169,13 @@ def stratified_unit_points(raw: jax.Array, counts: jax.Array, strata: tuple[int,
 
 
 class VegasPlusState(eqx.Module):
-    """The grid, the next round's stratified points and the grid's lookup table (see `VegasState`)."""
+    """The grid, the next round's stratified points, the grid's lookup table (see
+    `VegasState`) and whether the grid is refined at `VegasPlus.coarse_bins`."""
 
     grid: Grid
     draw: StratifiedDraw
     table: tuple[jax.Array, jax.Array, jax.Array]
+    coarse: jax.Array
 
 
 class VegasPlus(AbstractAdaptation):
@@ -189,17 +191,31 @@ class VegasPlus(AbstractAdaptation):
     largest values $|y|$: no Pareto $\hat k$ (NaN) and no i.i.d. bound on a
     power-law tail (`stats.stratified_estimate`), at half the time of a round of
     2048 points on a CPU; for rounds whose error bars are not reported.
+
+    With `coarse_bins` $M$ (a divisor of the grid's bins) and `coarse` true, the
+    grid is refined as a grid of $M$ bins held in its own (`Grid.refine_bins`).
+    `coarse` may be traced: a grid refined either way keeps its shape, so one
+    compiled program serves both, and the state carries the choice from `init`
+    on (rounds that continue from a state keep it).
     """
 
     alpha: float = 0.5
     beta: float = 0.75
     max_strata: int = eqx.field(static=True, default=2**16)
     diagnostics: bool = eqx.field(static=True, default=True)
+    coarse_bins: int | None = eqx.field(static=True, default=None)
+    coarse: bool | jax.Array = False
 
     def check(self, proposal, n):
         _check_grid(proposal, "VegasPlus")
         if self.max_strata > MAX_STRATA:
             raise ValueError(f"`max_strata` must be at most 2**22, got {self.max_strata}.")
+        if self.coarse_bins is not None and (
+            not 1 <= self.coarse_bins <= proposal.bins or proposal.bins % self.coarse_bins
+        ):
+            raise ValueError(
+                f"`coarse_bins` must divide the grid's {proposal.bins} bins, got {self.coarse_bins}."
+            )
 
     def _stratified_draw(self, key, index, sigma, n, grid) -> StratifiedDraw:
         strata = strata_per_axis(grid.dim, n, self.max_strata)
@@ -209,7 +225,8 @@ class VegasPlus(AbstractAdaptation):
     def init(self, key, proposal, n):
         h = math.prod(strata_per_axis(proposal.dim, n, self.max_strata))
         sigma0 = jnp.ones((h,), proposal.lo.dtype)
-        return VegasPlusState(proposal, self._stratified_draw(key, 0, sigma0, n, proposal), proposal.lookup_table())
+        draw = self._stratified_draw(key, 0, sigma0, n, proposal)
+        return VegasPlusState(proposal, draw, proposal.lookup_table(), jnp.asarray(self.coarse, bool))
 
     def step(self, key, index, state, integrand: Integrand):
         grid, draw = state.grid, state.draw
@@ -226,10 +243,17 @@ class VegasPlus(AbstractAdaptation):
         # Each sample stands for volume v / n_h of the unit cube: the per-bin sums
         # estimate the integral of (f/p)^2 over each bin, whatever the allocation.
         weight = vol / draw.counts.astype(y.dtype)[draw.cube]
-        grid = grid.refine_bins(bins, weight * _sq_norm(y), alpha=self.alpha)
+        grid = self._refine(grid, bins, weight * _sq_norm(y), state.coarse)
         samples = Samples(x, fx, log_p, weight)
         next_draw = self._stratified_draw(key, index + 1, sigma, n, grid)
-        return VegasPlusState(grid, next_draw, grid.lookup_table()), est, samples
+        return VegasPlusState(grid, next_draw, grid.lookup_table(), state.coarse), est, samples
+
+    def _refine(self, grid, bins, weights, coarse):
+        fine = grid.refine_bins(bins, weights, alpha=self.alpha)
+        if self.coarse_bins is None or self.coarse_bins == grid.bins:
+            return fine
+        rough = grid.refine_bins(bins, weights, alpha=self.alpha, coarse_bins=self.coarse_bins)
+        return eqx.tree_at(lambda g: g.logits, fine, jnp.where(coarse, rough.logits, fine.logits))
 
     def proposal(self, state):
         return state.grid

@@ -196,8 +196,16 @@ class Grid(AbstractUnitMap):
             )
         return self.refine_bins(self.bin_index(xm), weights, alpha=alpha, counts=counts)
 
-    def refine_bins(self, index: jax.Array, weights: jax.Array, *, alpha, counts=None) -> Grid:
-        """`refine` from the points' per-axis bin indices `(n, d)` (as `map_with_bins` returns them)."""
+    def refine_bins(
+        self, index: jax.Array, weights: jax.Array, *, alpha, counts=None, coarse_bins=None
+    ) -> Grid:
+        """`refine` from the points' per-axis bin indices `(n, d)` (as `map_with_bins` returns them).
+
+        With `coarse_bins` (a static divisor $M$ of `bins` $N$), the rule runs on $M$
+        groups of $N/M$ adjacent bins each and splits every new group evenly: a grid of
+        $M$ bins, the same map, held in $N$ (so that a grid refined either way has one
+        shape, `VegasPlus.coarse`).
+        """
         weights = jnp.where(jnp.isfinite(weights), jnp.abs(weights), 0.0)
         nb = self.bins
         # One scatter for all axes: axis j's bin i is slot j * N + i.
@@ -207,10 +215,26 @@ class Grid(AbstractUnitMap):
             jnp.reshape(per_point, (-1,)), jnp.reshape(flat, (-1,)), self.dim * nb
         )
         sums = jnp.reshape(sums, (self.dim, nb))
+        group = 1 if coarse_bins is None else _group_size(nb, coarse_bins)
+        logits = self.logits
+        if group > 1:  # sums, counts and widths of whole groups
+            sums = jnp.sum(jnp.reshape(sums, (self.dim, -1, group)), axis=-1)
+            if counts is not None:
+                counts = jnp.sum(jnp.reshape(jnp.broadcast_to(counts, (self.dim, nb)),
+                                             (self.dim, -1, group)), axis=-1)
+            logits = jax.nn.logsumexp(jnp.reshape(logits, (self.dim, -1, group)), axis=-1)
         if counts is not None:
             sums = sums / jnp.maximum(counts, 1)
-        new_logits = jax.vmap(lambda s, lg: _vegas_rule(s, lg, alpha))(sums, self.logits)
+        new_logits = jax.vmap(lambda s, lg: _vegas_rule(s, lg, alpha))(sums, logits)
+        if group > 1:  # each group's new width split evenly over its bins
+            new_logits = jnp.repeat(new_logits - jnp.log(group), group, axis=-1)
         return eqx.tree_at(lambda g: g.logits, self, new_logits)
+
+
+def _group_size(bins: int, coarse_bins: int) -> int:
+    if not 1 <= coarse_bins <= bins or bins % coarse_bins:
+        raise ValueError(f"`coarse_bins` must divide the grid's {bins} bins, got {coarse_bins}.")
+    return bins // coarse_bins
 
 
 # The share of each refined axis's mass spread evenly over it (see `Grid.refine`).
