@@ -243,17 +243,12 @@ class VegasPlus(AbstractAdaptation):
         # Each sample stands for volume v / n_h of the unit cube: the per-bin sums
         # estimate the integral of (f/p)^2 over each bin, whatever the allocation.
         weight = vol / draw.counts.astype(y.dtype)[draw.cube]
-        grid = self._refine(grid, bins, weight * _sq_norm(y), state.coarse)
+        grid = grid.refine_bins(bins, weight * _sq_norm(y), alpha=self.alpha,
+                                coarse_bins=self.coarse_bins, coarse=state.coarse)
         samples = Samples(x, fx, log_p, weight)
         next_draw = self._stratified_draw(key, index + 1, sigma, n, grid)
         return VegasPlusState(grid, next_draw, grid.lookup_table(), state.coarse), est, samples
 
-    def _refine(self, grid, bins, weights, coarse):
-        fine = grid.refine_bins(bins, weights, alpha=self.alpha)
-        if self.coarse_bins is None or self.coarse_bins == grid.bins:
-            return fine
-        rough = grid.refine_bins(bins, weights, alpha=self.alpha, coarse_bins=self.coarse_bins)
-        return eqx.tree_at(lambda g: g.logits, fine, jnp.where(coarse, rough.logits, fine.logits))
 
     def proposal(self, state):
         return state.grid

@@ -197,14 +197,15 @@ class Grid(AbstractUnitMap):
         return self.refine_bins(self.bin_index(xm), weights, alpha=alpha, counts=counts)
 
     def refine_bins(
-        self, index: jax.Array, weights: jax.Array, *, alpha, counts=None, coarse_bins=None
+        self, index: jax.Array, weights: jax.Array, *, alpha, counts=None, coarse_bins=None,
+        coarse=True,
     ) -> Grid:
         """`refine` from the points' per-axis bin indices `(n, d)` (as `map_with_bins` returns them).
 
-        With `coarse_bins` (a static divisor $M$ of `bins` $N$), the rule runs on $M$
-        groups of $N/M$ adjacent bins each and splits every new group evenly: a grid of
-        $M$ bins, the same map, held in $N$ (so that a grid refined either way has one
-        shape, `VegasPlus.coarse`).
+        With `coarse_bins` (a static divisor $M$ of `bins` $N$) and `coarse` (may be
+        traced), the rule runs on $M$ groups of $N/M$ adjacent bins each and splits every
+        new group evenly: a grid of $M$ bins, the same map, held in $N$ (so that a grid
+        refined either way has one shape, `VegasPlus.coarse`).
         """
         weights = jnp.where(jnp.isfinite(weights), jnp.abs(weights), 0.0)
         nb = self.bins
@@ -215,20 +216,27 @@ class Grid(AbstractUnitMap):
             jnp.reshape(per_point, (-1,)), jnp.reshape(flat, (-1,)), self.dim * nb
         )
         sums = jnp.reshape(sums, (self.dim, nb))
+        counts = None if counts is None else jnp.broadcast_to(counts, (self.dim, nb))
+        new_logits = _refined_logits(sums, counts, self.logits, alpha, 1)
         group = 1 if coarse_bins is None else _group_size(nb, coarse_bins)
-        logits = self.logits
-        if group > 1:  # sums, counts and widths of whole groups
-            sums = jnp.sum(jnp.reshape(sums, (self.dim, -1, group)), axis=-1)
-            if counts is not None:
-                counts = jnp.sum(jnp.reshape(jnp.broadcast_to(counts, (self.dim, nb)),
-                                             (self.dim, -1, group)), axis=-1)
-            logits = jax.nn.logsumexp(jnp.reshape(logits, (self.dim, -1, group)), axis=-1)
-        if counts is not None:
-            sums = sums / jnp.maximum(counts, 1)
-        new_logits = jax.vmap(lambda s, lg: _vegas_rule(s, lg, alpha))(sums, logits)
-        if group > 1:  # each group's new width split evenly over its bins
-            new_logits = jnp.repeat(new_logits - jnp.log(group), group, axis=-1)
+        if group > 1:
+            rough = _refined_logits(sums, counts, self.logits, alpha, group)
+            new_logits = jnp.where(coarse, rough, new_logits)
         return eqx.tree_at(lambda g: g.logits, self, new_logits)
+
+
+def _refined_logits(sums, counts, logits, alpha, group: int) -> jax.Array:
+    """`_vegas_rule` on every axis, over groups of `group` adjacent bins (their sums, counts
+    and widths), each new group's width split evenly over its bins."""
+    if group > 1:
+        grouped = lambda a: jnp.reshape(a, a.shape[:1] + (-1, group))  # noqa: E731
+        sums = jnp.sum(grouped(sums), axis=-1)
+        counts = None if counts is None else jnp.sum(grouped(counts), axis=-1)
+        logits = jax.nn.logsumexp(grouped(logits), axis=-1)
+    if counts is not None:
+        sums = sums / jnp.maximum(counts, 1)
+    new = jax.vmap(lambda s, lg: _vegas_rule(s, lg, alpha))(sums, logits)
+    return new if group == 1 else jnp.repeat(new - jnp.log(group), group, axis=-1)
 
 
 def _group_size(bins: int, coarse_bins: int) -> int:
