@@ -212,8 +212,8 @@ def test_auto_trains_the_grid_under_a_power_law_tail():
 def test_auto_trains_a_fine_grid_only_under_a_power_law_tail():
     # At 1e5 (rounds of 2^11) the grid holds 256 bins per axis: all of them refine where
     # QMC's values have a power-law tail (x^-1/2 per axis: its bins near 0 resolve the
-    # singularity), 64 elsewhere (an annulus' histogram would overfit 256), held as 64
-    # groups of 4 even bins, so that both are one compiled program.
+    # singularity), 64 elsewhere (where 256 can overfit: the 10-D ball erred 7x as much),
+    # held as 64 groups of 4 even bins, so that both are one compiled program.
     from jaxmc._estimators._adaptive import adaptive_block, training_rounds
     from jaxmc._estimators._auto import run_pilot, split_keys
 

@@ -87,9 +87,9 @@ def fine_grid_bins(block: int) -> int:
     against `grid_bins`' 64: x^-1/2 in 2-D 1.9e-3 -> 6.2e-4, x^-1/3 in 6-D 1.1e-3 ->
     6.9e-4, vegas's 4-D Gaussian 6.3e-4 -> 6.1e-5 (QMC through the grid now wins), a
     correlated 5-D posterior 2.2e-3 -> 3.5e-3 (still 50x the anchors' efficiency); in 8
-    and 16 dimensions every such case lost (i-flow's 8-D Gaussian 1.8e-4 -> 3.0e-4, the
-    16-D camel 1.4e-3 -> 2.2e-3, Genz's 16-D corner peak 3.6e-4 -> 4.3e-4): the product
-    of more axes' densities makes each axis' histogram noisier. Without a power-law
+    and 16 dimensions none gained and three lost (i-flow's 8-D Gaussian 1.8e-4 -> 3.0e-4,
+    the 16-D camel 1.4e-3 -> 2.2e-3, Genz's 16-D corner peak 3.6e-4 -> 4.3e-4): the
+    product of more axes' densities makes each axis' histogram noisier. Without a power-law
     tail 256 bins overfit: the 10-D ball indicator erred 7x as much (so `auto` refines
     at `grid_bins` there, `VegasPlus.coarse`).
     """

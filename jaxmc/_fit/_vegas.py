@@ -249,6 +249,5 @@ class VegasPlus(AbstractAdaptation):
         next_draw = self._stratified_draw(key, index + 1, sigma, n, grid)
         return VegasPlusState(grid, next_draw, grid.lookup_table(), state.coarse), est, samples
 
-
     def proposal(self, state):
         return state.grid
