@@ -160,26 +160,35 @@ def _scaled_two_peaks(x, a):
     return (_scaled_peak(x + 0.3 - 1 / 3, a) + _scaled_peak(x + 0.3 - 2 / 3, a)) / 2
 
 
-@pytest.mark.parametrize("method, choice, f", [
-    ("auto", 3, _scaled_two_peaks), ("auto", 2, _scaled_broad_peak),
-    ("adaptive", None, _scaled_peak),
-])
-def test_derivatives_hold_fitted_densities_fixed(method, choice, f):
+def _two_peaks_or_broad_peak(x, args):
+    """`_scaled_two_peaks`, or where `broad` `_scaled_broad_peak`, of `a`: as `args`,
+    `broad` is an input of the same compiled programs for both."""
+    a, broad = args
+    return jnp.where(broad, _scaled_broad_peak(x, a), _scaled_two_peaks(x, a))
+
+
+@pytest.mark.parametrize("method", ["auto", "adaptive"])
+def test_derivatives_hold_fitted_densities_fixed(method):
     # On two narrow peaks auto streams from its mixture (choice 3), on a broad one QMC through
     # its grid (choice 2), and "adaptive" from its grid: all fitted to the integrand's values.
     # The derivative holds them fixed, sum_i w_i df/da(x_i) / q(x_i), an unbiased estimate of
     # dI/da: for f = a * peak it is the estimate over a. Through the fits (EM's weights |f|,
     # VEGAS's histograms) it was NaN where f underflowed to 0.
     lo, hi = jnp.zeros(4), jnp.ones(4)
+    cases = [(False, 3), (True, 2)] if method == "auto" else [(None, None)]
+    for broad, choice in cases:
+        f = _scaled_peak if broad is None else _two_peaks_or_broad_peak
 
-    def run(a):
-        est = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=100_000, method=method, args=a)
-        return est.mean, est.pilot.choice if choice is not None else None
+        def run(a, broad=broad, f=f):
+            args = a if broad is None else (a, jnp.asarray(broad))
+            est = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=100_000, method=method,
+                                  args=args)
+            return est.mean, est.pilot.choice if choice is not None else None
 
-    (value, chosen), grad = jax.value_and_grad(run, has_aux=True)(2.0)
-    assert chosen == choice
-    np.testing.assert_allclose(grad, value / 2, rtol=1e-10)
-    assert abs(float(value) - 2) < 0.01
+        (value, chosen), grad = jax.value_and_grad(run, has_aux=True)(2.0)
+        assert chosen == choice
+        np.testing.assert_allclose(grad, value / 2, rtol=1e-10)
+        assert abs(float(value) - 2) < 0.01
 
 
 def test_fit_and_adapt_reuse_their_compiled_code(key):

@@ -77,7 +77,7 @@ The candidates:
   disqualify its pilot (on the posterior the pilot's Pareto $\hat k$ is
   0.4-0.75 at variances 100x and more below the grid's); but it is a candidate
   only if it fits well, relative variance per evaluation below
-  `MIXTURE_MAX_VARIANCE`: the grid's figure is its last training round's, and
+  `_pilot_mixture.MIXTURE_MAX_VARIANCE`: the grid's figure is its last training round's, and
   the grid goes on adapting (on the 10-D ball it measured 200-2000 and then
   ran at ~4). Unless the grid itself falls `UNDERCOVERED` times short of
   $|f|/\hat I$ at a mode the search found (`grid_misses_a_mode`): its figure
@@ -114,6 +114,8 @@ randomness, independent of the choice, so it stays unbiased.
 """
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -121,39 +123,27 @@ import numpy as np
 
 from .._checks import is_concrete
 from .._format import concrete, number
-from .._integrand import evaluate, ratio
 from ..proposals import Grid
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins
-from ._mode_search import (
-    differentiable,
-    find_modes,
-    grid_misses_a_mode,
-    search_evaluations,
-    with_modes,
-)
+from ._mode_search import search_evaluations
 from ._pilot_grid import grid_qmc_pilot, grid_rounds
+from ._pilot_mixture import mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
     MAX_NET_GROWTH,
     QMCFigures,
     clear_win_gain,
     measure_nets,
-    net_points,
     net_values,
     pilot_qmc_points,
-    relative_variance,
 )
 from ._plan import QMC_REPLICAS, final_net
-from ._seeded_mixture import _magnitude, importance_weights, seeded_mixture
 
 
 CANDIDATES = ("qmc", "adaptive", "grid_qmc", "mixture")
 # Time per evaluation, relative to a Sobol' point.
 RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "grid_qmc": 2.0, "mixture": 12.0}
 MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
-# The mixture is a candidate only below this relative variance per evaluation, where
-# its effective sample size n / (1 + v) is above n / 10 (`diagnostics.HEAVY_TAIL_ESS_SHARE`).
-MIXTURE_MAX_VARIANCE = 9.0
 # The lowest relative variance per evaluation expected of a mixture seeded from the
 # grid: measured 0.02-0.07 on vegas's and i-flow's Gaussians and camels at 1e5.
 MIXTURE_FLOOR = 0.01
@@ -223,62 +213,38 @@ def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
     return Pilot(("qmc",), v, v, jnp.asarray(0, jnp.int32), (evaluations,))
 
 
-@eqx.filter_jit
 def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured:
     `(their values, whether QMC already wins clearly by `EARLY_MARGIN` times the bar for
     nets of that size, the `Pilot` of QMC alone)`."""
     quarter = per_replica // 4
     y = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1)
-    qmc = measure_nets(y, growth, EARLY_MARGIN * clear_win_gain(quarter))
-    return y, qmc.clear_win, _alone(qmc, quarter * QMC_REPLICAS)
+    return (y,) + _early_verdict(y, growth=growth, bar=EARLY_MARGIN * clear_win_gain(quarter))
 
 
-@eqx.filter_jit
+# The figures of the QMC pilot's values, one compiled program for every integrand of their
+# shapes (as every figure of the pilot's: only the values are compiled for each integrand).
+@partial(jax.jit, static_argnames=("growth", "bar"))
+def _early_verdict(y, *, growth, bar):
+    qmc = measure_nets(y, growth, bar)
+    return qmc.clear_win, _alone(qmc, y.shape[1] * QMC_REPLICAS)
+
+
 def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured: `(QMCFigures,
     the `Pilot` of QMC alone)`. `early`, `early_win`: the values of their first quarter and
     its verdict (`_qmc_early_look`); only the rest is evaluated here, and an early clear win
     stands (under `jit`, where it could not end the pilot)."""
     rest = net_values(key, lo, hi, f, batched, 1, 3, (per_replica // 4).bit_length() - 1)
-    qmc = measure_nets(jnp.concatenate([early, rest], axis=1), growth, clear_win_gain(per_replica))
+    return _qmc_figures(early, rest, early_win, growth=growth, bar=clear_win_gain(per_replica))
+
+
+@partial(jax.jit, static_argnames=("growth", "bar"))
+def _qmc_figures(early, rest, early_win, *, growth, bar):
+    y = jnp.concatenate([early, rest], axis=1)
+    qmc = measure_nets(y, growth, bar)
     qmc = eqx.tree_at(lambda q: q.clear_win, qmc, qmc.clear_win | early_win)
-    return qmc, _alone(qmc, per_replica * QMC_REPLICAS)
-
-
-@eqx.filter_jit
-def _mixture_pilot(key, grid, samples, qmc_key, early, *, f, size, batched):
-    """Fit `seeded_mixture`, with Gaussians at the modes it missed (`_mode_search`, from the
-    best points of the QMC pilot's early look, `early` its values), and measure it on `size`
-    points: `(relative variance per evaluation, blind, the mixture, its points and values,
-    whether the modes were searched)`: only where JAX can differentiate `f`, asked while
-    this is traced (~12 ms a call if asked eagerly)."""
-    mixture = seeded_mixture(grid, samples)
-    searched = differentiable(f, batched, grid.lo)
-    grid_misses = jnp.asarray(False)
-    if searched:
-        x = net_points(qmc_key, grid.lo, grid.hi, 0, 1, early.shape[1].bit_length() - 1)
-        x = jnp.reshape(x, (-1, x.shape[-1]))
-        modes, values, scales, valid = find_modes(
-            f, batched, grid.lo, grid.hi, x,
-            _magnitude(jnp.reshape(early, (x.shape[0],) + early.shape[2:])))
-        integral = jnp.sum(importance_weights(samples))
-        mixture = with_modes(mixture, integral, modes, values, scales, valid)
-        grid_misses = grid_misses_a_mode(grid, integral, modes, values, valid)
-    x, p = mixture.sample(key, size)
-    y, _ = ratio(evaluate(f, x, batched), p)
-    mean = jnp.mean(y, axis=0)
-    variance = relative_variance(mean, jnp.var(y, axis=0, ddof=1))
-    # A mixture that fits this loosely (effective sample size below a tenth: relative
-    # variance above ~9) is no candidate: the grid's figure is of its last training
-    # round, and it goes on adapting, the mixture does not (on the 10-D ball the trained
-    # grid measured 200-2000 and then ran at ~4, against the mixture's 14-390). Unless the
-    # grid misses a mode the mixture was given: its figure then hides the missing mass.
-    loose = (variance > MIXTURE_MAX_VARIANCE) & ~grid_misses
-    variance = jnp.where(loose, jnp.inf, variance)
-    # Blind only if it saw nothing: a few large values are the defensive share's
-    # (bounded, see the module's docstring), not a missed peak's.
-    return variance, jnp.all(mean == 0), mixture, (x, y), searched, grid_misses
+    return qmc, _alone(qmc, y.shape[1] * QMC_REPLICAS)
 
 
 def _choose(qmc: QMCFigures, variance, blind):
@@ -440,7 +406,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     if mixture_n == 0 or (is_concrete(beaten) and bool(beaten)):
         pilot = Pilot(CANDIDATES[:3], variance, cost, choice, trained_n)
         return pilot, state, None, trained_rest
-    v_mixture, mixture_blind, mixture, draws, searched, grid_misses = _mixture_pilot(
+    v_mixture, mixture_blind, mixture, draws, searched, grid_misses = mixture_pilot(
         key_mixture, state.grid, samples, key_qmc, early, f=f, size=mixture_n, batched=batched
     )
     variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, grid_qmc, v_mixture,

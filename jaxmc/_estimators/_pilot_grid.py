@@ -2,7 +2,10 @@ r"""The VEGAS+ grid in `integrate(method="auto")`'s pilot: its training rounds, 
 (`grid_rounds`), and QMC's nets carried through the trained grid (`grid_qmc_pilot`)."""
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .._diagnostics import bounded_variance, tail_of
@@ -26,26 +29,40 @@ from ._pilot_nets import grid_net_values, measure_nets, relative_variance
 SCATTER_ROUNDS = 5
 SCATTER_TRUST = 30.0
 # QMC through the grid is a candidate only below this relative variance per evaluation of
-# plain MC through it: as `_auto.MIXTURE_MAX_VARIANCE`, an effective sample size above n/10.
+# plain MC through it: as `_pilot_mixture.MIXTURE_MAX_VARIANCE`, an effective sample size above n/10.
 GRID_QMC_MAX_VARIANCE = 9.0
 
 
-@eqx.filter_jit
 def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
     """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
     skipped, so one compiled program serves the screening and the training stage: ~1.5 s
     of a first call): the last round's relative variance per evaluation, whether it saw
     only zeros, the state after it and its `Samples`. With `coarse` (may be traced), a grid
-    of more bins than `grid_bins(round_size)` is refined at that many (`VegasPlus.coarse`)."""
-    # The rounds skip their diagnostics: only the last one's variance is read, bounded here
-    # from its values as its diagnostics would have bounded it.
+    of more bins than `grid_bins(round_size)` is refined at that many (`VegasPlus.coarse`).
+    The rounds are compiled for each integrand, their figures once for every integrand of
+    their shapes."""
+    parts, state, samples = _rounds(key, grid, active, coarse, f=f, rounds=rounds,
+                                    round_size=round_size, batched=batched)
+    figures = _round_figures(parts, samples.fx, samples.log_q, active, rounds=rounds,
+                             round_size=round_size)
+    return figures + (state, samples)
+
+
+@eqx.filter_jit
+def _rounds(key, grid, active, coarse, *, f, rounds, round_size, batched):
+    # The rounds skip their diagnostics: only the last one's variance is read, bounded in
+    # `_round_figures` from its values as its diagnostics would have bounded it.
     rule = VegasPlus(diagnostics=False, coarse_bins=grid_bins(round_size), coarse=coarse)
-    parts, state, samples = run_adaptation(
-        rule, key, Integrand(f, batched), grid, rounds, round_size, keep_samples=True,
-        active=active,
-    )
+    return run_adaptation(rule, key, Integrand(f, batched), grid, rounds, round_size,
+                          keep_samples=True, active=active)
+
+
+@partial(jax.jit, static_argnames=("rounds", "round_size"))
+def _round_figures(parts, fx, log_q, active, *, rounds, round_size):
+    """`grid_rounds`'s figures: the last round's relative variance per evaluation (hedged by
+    the recent rounds' scatter, see `SCATTER_TRUST`) and whether it saw only zeros."""
     last = active - 1
-    values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
+    values, _ = ratio(fx, jnp.exp(log_q))
     variance, _ = bounded_variance(parts.variance[last], parts.mean[last], tail_of(values))
     v_last = relative_variance(parts.mean[last], variance) * round_size
     # The scatter of the last SCATTER_ROUNDS rounds' means (the spread `method="adaptive"`
@@ -59,10 +76,9 @@ def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batch
     v_scatter = relative_variance(centre, spread) * round_size
     heavy = (active >= SCATTER_ROUNDS) & (v_last > SCATTER_TRUST * v_scatter)
     hedged = jnp.sqrt(v_last * v_scatter)  # the scatter of 5 rounds is itself uncertain
-    return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0), state, samples
+    return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0)
 
 
-@eqx.filter_jit
 def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points through the trained
     `grid`'s map, measured as QMC's pilot is (`measure_nets`, projected to nets `growth`
@@ -71,6 +87,11 @@ def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     adapting, QMC through it would not) or $f/q$ has a power-law tail (the replicas' spread
     understates, the refining grid gives the tighter honest error bar; see `_auto`)."""
     y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
+    return _grid_qmc_figures(y, growth=growth)
+
+
+@partial(jax.jit, static_argnames="growth")
+def _grid_qmc_figures(y, *, growth):
     figures = measure_nets(y, growth, jnp.inf)
     loose = figures.plain > GRID_QMC_MAX_VARIANCE
     variance = jnp.where(loose | figures.heavy, jnp.inf, figures.variance)

@@ -117,6 +117,7 @@ def net_points(key, lo, hi, first, blocks, log2_block):
     return jax.vmap(lambda ur: to_box(ur if lo.ndim else ur[:, 0], lo, hi))(u)
 
 
+@eqx.filter_jit
 def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
     """Integrand values `(QMC_REPLICAS, blocks * 2**log2_block, ...)` at `net_points`."""
     x = net_points(key, lo, hi, first, blocks, log2_block)
@@ -124,6 +125,7 @@ def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
     return jax.vmap(lambda xr: ratio(evaluate(f, xr, batched), 1 / volume)[0])(x)
 
 
+@eqx.filter_jit
 def grid_net_values(key, grid, f, batched, log2_size):
     r"""The values $f/q$ `(QMC_REPLICAS, 2**log2_size, ...)` of whole scrambled Sobol' nets
     carried through a VEGAS `grid`'s map ($x = G(u)$, $q$ the grid's density)."""

@@ -1,0 +1,83 @@
+r"""The mixture in `integrate(method="auto")`'s pilot (`mixture_pilot`): seeded from the
+trained grid (`_seeded_mixture`), given Gaussians at the modes it missed (`_mode_search`),
+and measured on points of its own.
+
+Its compiled programs are split where the integrand enters. What never evaluates $f$
+(EM's fit, the Gaussians placed at modes, the draw from the mixture) is one program per
+shape, compiled once for every integrand of that dimension and budget; only the ascent
+to the modes and the values $f/p$ are compiled for each integrand. Under `jit` it is all
+one program, as before.
+"""
+from __future__ import annotations
+
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._mode_search import differentiable, find_modes, grid_misses_a_mode, with_modes
+from ._pilot_nets import net_points, relative_variance
+from ._seeded_mixture import _magnitude, importance_weights, mixture_values, seeded_mixture
+
+
+# The mixture is a candidate only below this relative variance per evaluation, where
+# its effective sample size n / (1 + v) is above n / 10 (`diagnostics.HEAVY_TAIL_ESS_SHARE`).
+MIXTURE_MAX_VARIANCE = 9.0
+
+
+@eqx.filter_jit
+def _modes(qmc_key, lo, hi, early, *, f, batched):
+    """The modes near the QMC pilot's best points (`find_modes`; `early`: the values of its
+    early look), or `None` where JAX cannot differentiate `f`: asked while this is traced
+    (~12 ms a call if asked eagerly)."""
+    if not differentiable(f, batched, lo):
+        return None
+    x = net_points(qmc_key, lo, hi, 0, 1, early.shape[1].bit_length() - 1)
+    x = jnp.reshape(x, (-1, x.shape[-1]))
+    return find_modes(f, batched, lo, hi, x,
+                      _magnitude(jnp.reshape(early, (x.shape[0],) + early.shape[2:])))
+
+
+@partial(jax.jit, static_argnames="size")
+def _seeded_draw(key, grid, samples, modes, *, size):
+    """`seeded_mixture` with Gaussians at the `modes` it misses (if any were searched), and
+    `size` points drawn from it: `(mixture, x, p(x), whether the grid misses a mode)`."""
+    mixture = seeded_mixture(grid, samples)
+    grid_misses = jnp.asarray(False)
+    if modes is not None:
+        integral = jnp.sum(importance_weights(samples))
+        mixture = with_modes(mixture, integral, *modes)
+        at, values, _, valid = modes
+        grid_misses = grid_misses_a_mode(grid, integral, at, values, valid)
+    x, p = mixture.sample(key, size)
+    return mixture, x, p, grid_misses
+
+
+@jax.jit
+def _figures(y, grid_misses):
+    """The mixture's relative variance per evaluation from its values `y` (`inf` where it
+    fits loosely, see `mixture_pilot`), and whether it saw only zeros."""
+    mean = jnp.mean(y, axis=0)
+    variance = relative_variance(mean, jnp.var(y, axis=0, ddof=1))
+    # A mixture that fits this loosely (effective sample size below a tenth: relative
+    # variance above ~9) is no candidate: the grid's figure is of its last training
+    # round, and it goes on adapting, the mixture does not (on the 10-D ball the trained
+    # grid measured 200-2000 and then ran at ~4, against the mixture's 14-390). Unless the
+    # grid misses a mode the mixture was given: its figure then hides the missing mass.
+    loose = (variance > MIXTURE_MAX_VARIANCE) & ~grid_misses
+    # Blind only if it saw nothing: a few large values are the defensive share's
+    # (bounded, see `_auto`'s docstring), not a missed peak's.
+    return jnp.where(loose, jnp.inf, variance), jnp.all(mean == 0)
+
+
+def mixture_pilot(key, grid, samples, qmc_key, early, *, f, size, batched):
+    """Fit `seeded_mixture`, with Gaussians at the modes it missed (`_mode_search`, from the
+    best points of the QMC pilot's early look, `early` its values), and measure it on `size`
+    points: `(relative variance per evaluation, blind, the mixture, its points and values,
+    whether the modes were searched, whether the grid misses one)`."""
+    modes = _modes(qmc_key, grid.lo, grid.hi, early, f=f, batched=batched)
+    mixture, x, p, grid_misses = _seeded_draw(key, grid, samples, modes, size=size)
+    y = mixture_values(x, p, f=f, batched=batched)
+    variance, blind = _figures(y, grid_misses)
+    return variance, blind, mixture, (x, y), modes is not None, grid_misses
