@@ -443,7 +443,7 @@ def test_auto_pilot_never_biases_the_result():
 def _traced_matches_the_eager_choice(traced, f, lo, hi):
     """The traced choice (under jit, on the keys split from `key(3)` into 120) is the eager
     one, with the same estimate and stream: on the first key that took each of the grid,
-    QMC through it and the mixture (the same compiled program as the bias check above). An
+    QMC through it and the mixture (the traced estimates are the bias check's above). An
     eager pilot whose winner already costs less than any mixture skips fitting one (its
     evaluations then left unspent, not counted in `n`); under jit the mixture is measured."""
     keys = jax.random.split(jax.random.key(3), 120)

@@ -29,7 +29,8 @@ from ._pilot_nets import grid_net_values, measure_nets, relative_variance
 SCATTER_ROUNDS = 5
 SCATTER_TRUST = 30.0
 # QMC through the grid is a candidate only below this relative variance per evaluation of
-# plain MC through it: as `_pilot_mixture.MIXTURE_MAX_VARIANCE`, an effective sample size above n/10.
+# plain MC through it: as `_pilot_mixture.MIXTURE_MAX_VARIANCE`, an effective sample size
+# above n/10.
 GRID_QMC_MAX_VARIANCE = 9.0
 
 
