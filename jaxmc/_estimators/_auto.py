@@ -65,7 +65,11 @@ The candidates:
   and a mode where the mixture's density falls far short of the integrand gets a
   Gaussian of its own (i-flow's 16-D camel at $10^5$: 7 keys of 10 had held one
   of its two modes, estimates half the truth at 5-750 standard errors; with the
-  search, 10 of 10 within 2).
+  search, 10 of 10 within 2). Before the search and those points are paid for, the
+  seeded mixture is judged on the grid's own points (`mixture_outlook`, no evaluation of
+  $f$), and not measured where it would cost `MIXTURE_HOPELESS` times QMC or the grid
+  (Gaussians do not follow a singularity: at 1e5, $x^{-1/3}$ in 6-D spent ~4 ms of its
+  ~25 ms, and 2672 evaluations, on a mixture that measured 40-100x the grid's cost).
   A grid is a product of axis densities: a peak along a diagonal, or several
   peaks, make it put mass on every combination of the axes' bins, which a
   mixture of Gaussians does not (measured, variance per evaluation against the
@@ -127,7 +131,7 @@ from ..proposals import Grid
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins
 from ._mode_search import search_evaluations
 from ._pilot_grid import grid_qmc_pilot, grid_rounds
-from ._pilot_mixture import mixture_pilot
+from ._pilot_mixture import mixture_outlook, mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
     MAX_NET_GROWTH,
@@ -148,6 +152,13 @@ MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
 # grid: measured 0.02-0.07 on vegas's and i-flow's Gaussians and camels at 1e5.
 MIXTURE_FLOOR = 0.01
 SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
+# A mixture whose figure on the grid's points (`mixture_outlook`) costs this many times QMC's
+# or the grid's is not measured. The ratio, 4 keys at 1e5 and 1e6: 8.9-68 on x^-1/3 in 6-D,
+# x^-1/2 in 2-D and (sum x)^-3/2 in 4-D (the measured mixture then cost 6-100x the grid),
+# 5.8-8.3 on the 4-D resonance where its grid trained (the mixture measured too loose to
+# compete); at most 1.1 where the mixture won or came near (two 4-D Gaussians, the 5-D
+# posterior, i-flow's 16-D camel and 8-D Gaussian, vegas's 4-D Gaussian, the 10-D ball).
+MIXTURE_HOPELESS = 4.0
 # A young grid this much costlier than QMC is not trained on (never under a power-law tail
 # of QMC's values, see `_screen`). Measured after 3 rounds, against QMC's projected cost,
 # 4 keys of every `auto` benchmark case that was no clear win, at 1e5 and 1e6: where the
@@ -298,6 +309,14 @@ def _after_training(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, s
     return three, beaten
 
 
+@jax.jit
+def _hopeless(outlook, cost):
+    """Whether the mixture, at its figure on the grid's points (`mixture_outlook`), costs
+    `MIXTURE_HOPELESS` times as much as QMC or the grid (`cost`: QMC's, the grid's, ...).
+    Not QMC through the grid, as for `MIXTURE_FLOOR` (`_after_training`)."""
+    return RELATIVE_COST["mixture"] * outlook > MIXTURE_HOPELESS * jnp.min(cost[:2])
+
+
 @eqx.filter_jit
 def _with_mixture(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, v_mixture,
                   mixture_blind, grid_misses, screened, decided):
@@ -335,8 +354,9 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     QMC through the trained grid is measured on nets as large as QMC's pilot's.
     The mixture is seeded from the trained grid and measured on at most
     `MIXTURE_PILOT_POINTS` points, unless another candidate already costs less than
-    a mixture at `MIXTURE_FLOOR` would, in one dimension (a grid there is any
-    piecewise-constant density). With a tolerance too: on the 5-D posterior at
+    a mixture at `MIXTURE_FLOOR` would, or the mixture's figure on the grid's points
+    costs `MIXTURE_HOPELESS` times QMC's or the grid's, or in one dimension (a grid there
+    is any piecewise-constant density). With a tolerance too: on the 5-D posterior at
     `rtol=1e-3` (32 keys) the refitted mixture with its wide part met it in 0.82M
     evaluations (median; at most 3.4M, vegas 1.5M) with no z below -2.4
     (mean -0.8), where the grid's stream took 3.3M (at most 14M over 40 keys, one
@@ -403,11 +423,18 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     # already costs less than such a mixture would, it is not fitted (outside jit only).
     (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, grid_qmc,
                                                        screened, decided)
+    without_mixture = Pilot(CANDIDATES[:3], variance, cost, choice, trained_n)
     if mixture_n == 0 or (is_concrete(beaten) and bool(beaten)):
-        pilot = Pilot(CANDIDATES[:3], variance, cost, choice, trained_n)
-        return pilot, state, None, trained_rest
+        return without_mixture, state, None, trained_rest
+    # The mixture seeded from the grid, judged on the grid's points before the search for
+    # modes and its own points are paid for: hopeless, it is not measured (outside jit).
+    mixture, outlook = mixture_outlook(state.grid, samples)
+    hopeless = _hopeless(outlook, cost)
+    if is_concrete(hopeless) and bool(hopeless):
+        return without_mixture, state, None, trained_rest
     v_mixture, mixture_blind, mixture, draws, searched, grid_misses = mixture_pilot(
-        key_mixture, state.grid, samples, key_qmc, early, f=f, size=mixture_n, batched=batched
+        key_mixture, mixture, state.grid, samples, key_qmc, early, f=f, size=mixture_n,
+        batched=batched,
     )
     variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, grid_qmc, v_mixture,
                                            mixture_blind, grid_misses, screened, decided)

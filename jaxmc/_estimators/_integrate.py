@@ -205,8 +205,8 @@ def integrate(
 
     **Compilation** is cached per integrand object `f` and sizes: a new
     `lambda` or closure per call compiles anew (for `"auto"` at $10^5$-$10^6$
-    evaluations, in the `auto` benchmark on 2 CPU cores: 2.5-9 s where QMC
-    wins, 4.5-18 s where the grid does, 8-21 s with the mixture). What does not
+    evaluations, in the `auto` benchmark on 2 CPU cores: 2.6-9 s where QMC
+    wins, 4.3-15 s where the grid does, 6-19 s with the mixture). What does not
     evaluate `f` (the pilot's figures, the mixture's fits and draws) is
     compiled once per dimension and budget and serves the next integrand
     (a 4-D peak after another: 12.4-12.7 s -> 8.6-8.9 s). For a family
