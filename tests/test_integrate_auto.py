@@ -218,7 +218,7 @@ def test_auto_trains_the_grid_under_a_power_law_tail(inverse_square_roots):
 
 def test_auto_measures_no_mixture_its_outlook_rules_out(inverse_square_roots):
     # The mixture seeded from the trained grid, judged on the grid's points, would cost
-    # 10-40x the grid on x^-1/2 (Gaussians do not follow a singularity): it is not
+    # 9-40x QMC or the grid on x^-1/2 (Gaussians do not follow a singularity): it is not
     # measured, and its points and search are left unspent. It was not ruled out by the
     # floor below which no mixture measured so far has gone: the outlook did it.
     from jaxmc._estimators._auto import CANDIDATES, MIXTURE_FLOOR, RELATIVE_COST
