@@ -20,8 +20,8 @@ import jax.numpy as jnp
 from ._mode_search import differentiable, find_modes, grid_misses_a_mode, with_modes
 from ._pilot_nets import net_points, relative_variance
 from ._seeded_mixture import (
-    MIXTURE_FIT_POINTS,
     _magnitude,
+    fit_points,
     importance_weights,
     mixture_values,
     seeded_mixture,
@@ -47,14 +47,11 @@ def mixture_outlook(grid, samples):
     or near on the peaks where the mixture wins, up to 16x above it on the 5-D posterior
     and 13x on the 16-D camel, whose grids are far costlier still."""
     mixture = seeded_mixture(grid, samples)
-    # On the points EM fitted (`seeded_mixture`'s stride), their weights normalised.
-    stride = max(1, samples.weights.shape[0] // MIXTURE_FIT_POINTS)
-    x, fx, log_q, w = (a[::stride] for a in (samples.x, samples.fx, samples.log_q,
-                                             samples.weights))
-    f = _magnitude(fx)
-    w = w / jnp.sum(w) * jnp.exp(-log_q)
+    points = fit_points(samples)  # the points EM fitted, their weights normalised
+    f = _magnitude(points.fx)
+    w = points.weights / jnp.sum(points.weights) * jnp.exp(-points.log_q)
     integral = jnp.sum(w * f)
-    second = jnp.sum(w * f**2 * jnp.exp(-mixture.log_pdf(x)))
+    second = jnp.sum(w * f**2 * jnp.exp(-mixture.log_pdf(points.x)))
     tiny = jnp.finfo(integral.dtype).tiny
     return mixture, second / jnp.maximum(integral**2, tiny) - 1
 

@@ -118,13 +118,19 @@ def importance_weights(samples):
     return _magnitude(samples.fx) * samples.weights * jnp.exp(-samples.log_q)
 
 
-def seeded_mixture(grid: Grid, samples) -> Mixture:
-    r"""The mixture fitted to a grid's round of `samples` (weights $|f|\,w/q$). At most
-    `MIXTURE_FIT_POINTS` of them, a stride apart: a VEGAS+ round lies hypercube by
+def fit_points(samples):
+    """The points of a grid's round of `samples` that seed the mixture: at most
+    `MIXTURE_FIT_POINTS` of them, a stride apart (a VEGAS+ round lies hypercube by
     hypercube, so the stride keeps every part of the cube, and EM's time grows with
-    the points."""
+    the points)."""
     stride = max(1, samples.weights.shape[0] // MIXTURE_FIT_POINTS)
-    samples = jax.tree.map(lambda a: a[::stride], samples)
+    return jax.tree.map(lambda a: a[::stride], samples)
+
+
+def seeded_mixture(grid: Grid, samples) -> Mixture:
+    r"""The mixture fitted to a grid's round of `samples` (weights $|f|\,w/q$), on its
+    `fit_points`."""
+    samples = fit_points(samples)
     gm, _ = _fitted_gaussians(grid, samples.x, importance_weights(samples), WIDE_MIN_SHARE)
     return Mixture((gm, grid), (1 - DEFENSIVE_SHARE, DEFENSIVE_SHARE), stratified=True)
 
