@@ -110,7 +110,9 @@ def integrate(
         - `"auto"` (default): a pilot measures each candidate's variance per
           evaluation — randomised QMC on at most 1/16 of the budget, then,
           unless QMC already beats plain MC 15-30-fold on the same points (a
-          smooth integrand at that scale), the VEGAS+ grid of `"adaptive"` as
+          smooth integrand at that scale; where `f` is a product of
+          one-dimensional factors, which a grid fits exactly, only by a far
+          wider margin, on the nets' first quarter), the VEGAS+ grid of `"adaptive"` as
           it trains (at most a quarter), QMC's nets carried through the
           trained grid's map (`est.method` `"grid_qmc"`) and a mixture of
           Gaussians seeded from the trained grid, with one more at each mode
