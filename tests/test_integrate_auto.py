@@ -112,14 +112,15 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     # (A narrow peak: no clear win, early or on the whole nets.)
     key, f = jax.random.key(3), peak(3, s=0.03)
     settings = dict(f=f, per_replica=512, batched=False)
-    early, early_win, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
-    reused, _ = _qmc_pilot(key, lo, hi, early, early_win, growth=8.0, **settings)
+    early, bins, early_win, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
+    reused, _ = _qmc_pilot(key, lo, hi, (early, bins), early_win, growth=8.0, **settings)
     whole = measure_nets(net_values(key, lo, hi, f, False, 0, 4, 7), 8.0, clear_win_gain(512))
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(reused)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10)
     # Under jit, where an early clear win cannot end the pilot, the verdict stands.
     assert not bool(early_win) and not bool(reused.clear_win)
-    stands, _ = _qmc_pilot(key, lo, hi, early, jnp.asarray(True), growth=8.0, **settings)
+    stands, _ = _qmc_pilot(key, lo, hi, (early, bins), jnp.asarray(True), growth=8.0,
+                           **settings)
     assert bool(stands.clear_win)
 
 
@@ -278,14 +279,12 @@ def test_auto_carries_qmc_through_the_grid_that_flattens_a_corner_peak():
 
 
 def test_separable_reads_a_product_of_one_dimensional_factors():
-    from jaxmc._estimators._pilot_nets import net_points, separable
-
-    key = jax.random.key(0)
+    from jaxmc._estimators._pilot_nets import net_values, separable
 
     def looks_separable(f, d=4):
-        lo, hi = box(d)
-        x = net_points(key, lo, hi, 0, 1, 9)  # the pilot's 8 nets of 512 points
-        return bool(separable(key, lo, jax.vmap(jax.vmap(f))(x)))
+        # The pilot's 8 nets of 512 points, and their bins.
+        y, bins = net_values(jax.random.key(0), *box(d), f, False, 0, 1, 9, True)
+        return bool(separable(bins, y))
 
     kinks = lambda x: jnp.exp(-5 * jnp.sum(jnp.abs(x - 0.4)))
     assert looks_separable(kinks) and looks_separable(cos_product)
@@ -314,9 +313,8 @@ def test_a_product_wins_early_only_by_a_wide_margin():
     kinks = lambda x: jnp.exp(-a * jnp.sum(jnp.abs(x - u)))
     for f, wins in ((kinks, False), (genz_gaussian(d), True)):
         for seed in (0, 1):
-            key = jax.random.key(seed)
-            y = net_values(key, lo, hi, f, False, 0, 1, 10)
-            early = early_look_figures(key, lo, y, 8.0, bar)
+            y, bins = net_values(jax.random.key(seed), lo, hi, f, False, 0, 1, 10, True)
+            early = early_look_figures(bins, y, 8.0, bar)
             assert bool(measure_nets(y, 8.0, bar).clear_win) and bool(early.separable), seed
             assert bool(early.clear_win) == wins, seed
 

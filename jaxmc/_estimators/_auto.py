@@ -229,34 +229,34 @@ def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
 
 def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured: `(their
-    values, whether QMC wins clearly by `EARLY_MARGIN` times their bar, QMC's lone `Pilot`)`."""
+    values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar, QMC's lone
+    `Pilot`)`."""
     quarter = per_replica // 4
-    y = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1)
-    return (y,) + _early_verdict(key, lo, y, growth=growth,
-                                 bar=EARLY_MARGIN * clear_win_gain(quarter))
+    y, bins = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1, True)
+    return (y, bins) + _early_verdict(bins, y, growth=growth,
+                                      bar=EARLY_MARGIN * clear_win_gain(quarter))
 
 
 # The figures of the QMC pilot's values, one compiled program for every integrand of their
 # shapes (as every figure of the pilot's: only the values are compiled for each integrand).
 @partial(jax.jit, static_argnames=("growth", "bar"))
-def _early_verdict(key, lo, y, *, growth, bar):
-    qmc = early_look_figures(key, lo, y, growth, bar)
+def _early_verdict(bins, y, *, growth, bar):
+    qmc = early_look_figures(bins, y, growth, bar)
     return qmc.clear_win, _alone(qmc, y.shape[1] * QMC_REPLICAS)
 
 
 def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured: `(QMCFigures,
-    QMC's lone `Pilot`)`. `early`, `early_win`: their first quarter's values and verdict
-    (`_qmc_early_look`); the rest is evaluated here; an early clear win stands (under `jit`)."""
-    rest = net_values(key, lo, hi, f, batched, 1, 3, (per_replica // 4).bit_length() - 1)
-    return _qmc_figures(key, lo, early, rest, early_win, growth=growth,
-                        bar=clear_win_gain(per_replica))
+    QMC's lone `Pilot`)`. `early`, `early_win`: their first quarter's values and bins, and its
+    verdict (`_qmc_early_look`); the rest is evaluated here; an early clear win stands."""
+    rest = net_values(key, lo, hi, f, batched, 1, 3, (per_replica // 4).bit_length() - 1, True)
+    return _qmc_figures(early, rest, early_win, growth=growth, bar=clear_win_gain(per_replica))
 
 
 @partial(jax.jit, static_argnames=("growth", "bar"))
-def _qmc_figures(key, lo, early, rest, early_win, *, growth, bar):
-    y = jnp.concatenate([early, rest], axis=1)
-    qmc = whole_nets_figures(key, lo, y, early_win, growth, bar)
+def _qmc_figures(early, rest, early_win, *, growth, bar):
+    y, bins = (jnp.concatenate(parts, axis=1) for parts in zip(early, rest))
+    qmc = whole_nets_figures(bins, y, early_win, growth, bar)
     return qmc, _alone(qmc, y.shape[1] * QMC_REPLICAS)
 
 
@@ -389,12 +389,13 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     # points then go to the stream (at 1e5, 3 nets of 2^15 instead of 5 of 2^14).
     early_rest = budget - qmc_n // 4
     early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
-    early, early_win, alone = _qmc_early_look(key_qmc, lo, hi, f=f, per_replica=per_replica,
-                                              growth=early_growth, batched=batched)
+    early, early_bins, early_win, alone = _qmc_early_look(
+        key_qmc, lo, hi, f=f, per_replica=per_replica, growth=early_growth, batched=batched
+    )
     if is_concrete(early_win) and bool(early_win):
         return alone, None, None, early_rest
-    qmc, alone = _qmc_pilot(key_qmc, lo, hi, early, early_win, f=f, per_replica=per_replica,
-                            growth=growth, batched=batched)
+    qmc, alone = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_win, f=f,
+                            per_replica=per_replica, growth=growth, batched=batched)
     if is_concrete(qmc.clear_win) and bool(qmc.clear_win):
         return alone, None, None, screened_rest
     # Fine bins under a power-law tail, held either way (`VegasPlus.coarse`: may be traced).

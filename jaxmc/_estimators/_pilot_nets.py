@@ -128,12 +128,13 @@ def _net_units(key, d, dtype, first, blocks, log2_block):
     return jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
 
 
-def separable(key, lo, y) -> jax.Array:
+def separable(bins, y) -> jax.Array:
     r"""Whether $f$ looks like a product of one-dimensional factors $\prod_j g_j(x_j)$, from
-    its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets (`key`; `lo` gives their
-    dimension): the per-axis means of $z = \log(|f| + 10^{-3}\max|f|)$ in `SEPARABLE_BINS`
-    bins (the main effects of $z$; every bin holds $n/B$ of a net's $n$ points) explain at
-    least `SEPARABLE_SHARE` of $z$'s variance,
+    its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, whose points lie in `bins`
+    `(QMC_REPLICAS, m, d)` (`net_values`): the per-axis means of
+    $z = \log(|f| + 10^{-3}\max|f|)$ in `SEPARABLE_BINS` bins (the main effects of $z$;
+    every bin holds $n/B$ of a net's $n$ points) explain at least `SEPARABLE_SHARE` of $z$'s
+    variance,
     $$\frac{B}{n^2}\sum_{j,b} S_{jb}^2 \Big/ \frac1n \sum_i z_i^2 \ge s,$$
     $S_{jb}$ the sum of the centred $z$ over bin $b$ of axis $j$, adjusted for the share
     $c = d(B-1)/n$ that bins explain by chance, $(\text{share} - c)/(1 - c)$. A VEGAS grid
@@ -145,19 +146,17 @@ def separable(key, lo, y) -> jax.Array:
     clear win there anyway), 0.57-0.63 on his discontinuous family and the 3-D ball, at
     most 0.52 on the rest of the `auto` suite. Never in one dimension, where every $f$ is
     one factor."""
-    if lo.ndim == 0 or lo.shape[0] == 1:
+    d, m = bins.shape[-1], min(y.shape[1], SEPARABLE_POINTS)  # a net's first points: a net
+    if d == 1:
         return jnp.asarray(False)
-    d, m = lo.shape[0], min(y.shape[1], SEPARABLE_POINTS)  # the first points of a net: a net
-    u = jnp.reshape(_net_units(key, d, lo.dtype, 0, 1, m.bit_length() - 1), (-1, d))
-    y = y[:, :m]
-    a = jnp.abs(jnp.reshape(y, (u.shape[0], -1)))
+    bins = jnp.reshape(bins[:, :m], (-1, d)).astype(jnp.int32)
+    a = jnp.abs(jnp.reshape(y[:, :m], (bins.shape[0], -1)))
     a = jnp.sqrt(jnp.sum(a**2, axis=1))  # in quadrature over an array-valued f's components
     z = jnp.log(a + SEPARABLE_FLOOR * jnp.max(a) + jnp.finfo(a.dtype).tiny)
     centre = jnp.mean(z)
     z = z - centre
     # The main effects' share of the variance (the first-order Sobol' indices of z, summed),
     # from the bins' sums: one scatter-add, one flat index per axis and bin.
-    bins = jnp.clip(jnp.floor(u * SEPARABLE_BINS).astype(jnp.int32), 0, SEPARABLE_BINS - 1)
     index = bins + SEPARABLE_BINS * jnp.arange(d, dtype=jnp.int32)
     sums = jnp.zeros((d * SEPARABLE_BINS,), z.dtype).at[index].add(z[:, None])
     n = z.shape[0]
@@ -173,16 +172,26 @@ def separable(key, lo, y) -> jax.Array:
 def net_points(key, lo, hi, first, blocks, log2_block):
     """`_net_units` in the box `(QMC_REPLICAS, m, d)` (or without `d` in one dimension)."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
-    u = _net_units(key, d, lo.dtype, first, blocks, log2_block)
+    return _in_box(_net_units(key, d, lo.dtype, first, blocks, log2_block), lo, hi)
+
+
+def _in_box(u, lo, hi):
     return jax.vmap(lambda ur: to_box(ur if lo.ndim else ur[:, 0], lo, hi))(u)
 
 
 @eqx.filter_jit
-def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
-    """Integrand values `(QMC_REPLICAS, blocks * 2**log2_block, ...)` at `net_points`."""
-    x = net_points(key, lo, hi, first, blocks, log2_block)
+def net_values(key, lo, hi, f, batched, first, blocks, log2_block, with_bins=False):
+    """Integrand values `(QMC_REPLICAS, blocks * 2**log2_block, ...)` at `net_points`; with
+    `with_bins`, also each point's `SEPARABLE_BINS` bin on each axis `(..., d)` (int8), for
+    `separable` (made here, from the points at hand, rather than anew in its program)."""
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    u = _net_units(key, d, lo.dtype, first, blocks, log2_block)
     volume = jnp.prod(hi - lo)
-    return jax.vmap(lambda xr: ratio(evaluate(f, xr, batched), 1 / volume)[0])(x)
+    y = jax.vmap(lambda xr: ratio(evaluate(f, xr, batched), 1 / volume)[0])(_in_box(u, lo, hi))
+    if not with_bins:
+        return y
+    bins = jnp.clip(jnp.floor(u * SEPARABLE_BINS), 0, SEPARABLE_BINS - 1).astype(jnp.int8)
+    return y, bins
 
 
 @eqx.filter_jit
@@ -238,21 +247,21 @@ def measure_nets(y, growth, bar):
     return QMCFigures(projected, clear_win, blind, heavy, plain)
 
 
-def early_look_figures(key, lo, y, growth, bar) -> QMCFigures:
+def early_look_figures(bins, y, growth, bar) -> QMCFigures:
     """`measure_nets` of the early look's nets `y`, whose clear win must be
     `SEPARABLE_EARLY_MARGIN` times `bar` where $f$ looks `separable`."""
     qmc = measure_nets(y, growth, bar)
     strict = measure_nets(y, growth, SEPARABLE_EARLY_MARGIN * bar).clear_win
-    product = separable(key, lo, y)
+    product = separable(bins, y)
     win = jnp.where(product, strict, qmc.clear_win)
     return eqx.tree_at(lambda q: (q.clear_win, q.separable), qmc, (win, product))
 
 
-def whole_nets_figures(key, lo, y, early_win, growth, bar) -> QMCFigures:
+def whole_nets_figures(bins, y, early_win, growth, bar) -> QMCFigures:
     """`measure_nets` of the whole nets `y`: their clear win only where $f$ does not look
     `separable` (a grid fits a product of one-dimensional factors exactly), or the early
     look's (`early_win`, which stands)."""
     qmc = measure_nets(y, growth, bar)
-    product = separable(key, lo, y)
+    product = separable(bins, y)
     win = (qmc.clear_win & ~product) | early_win
     return eqx.tree_at(lambda q: (q.clear_win, q.separable), qmc, (win, product))
