@@ -250,11 +250,9 @@ def measure_nets(y, growth, bar):
 def early_look_figures(bins, y, growth, bar) -> QMCFigures:
     """`measure_nets` of the early look's nets `y`, whose clear win must be
     `SEPARABLE_EARLY_MARGIN` times `bar` where $f$ looks `separable`."""
-    qmc = measure_nets(y, growth, bar)
-    strict = measure_nets(y, growth, SEPARABLE_EARLY_MARGIN * bar).clear_win
     product = separable(bins, y)
-    win = jnp.where(product, strict, qmc.clear_win)
-    return eqx.tree_at(lambda q: (q.clear_win, q.separable), qmc, (win, product))
+    qmc = measure_nets(y, growth, jnp.where(product, SEPARABLE_EARLY_MARGIN, 1.0) * bar)
+    return eqx.tree_at(lambda q: q.separable, qmc, product)
 
 
 def whole_nets_figures(bins, y, early_win, growth, bar) -> QMCFigures:
