@@ -140,9 +140,9 @@ def test_samples_reproduce_the_round_estimate(key, rule, proposal, n):
 
 @pytest.mark.parametrize("keep_samples", [False, True])
 def test_active_rounds_are_the_first_rounds_of_a_shorter_run(key, keep_samples):
-    """`active=k` in a scan of 5 rounds runs exactly the rounds of `iterations=k` (same
-    keys, state and kept samples) and estimates zeros for the skipped ones, under one
-    compiled program for every k."""
+    """`active=k` of 5 rounds runs exactly the rounds of `iterations=k` (same keys, state
+    and kept samples) and estimates zeros for the skipped ones, under one compiled program
+    for every k, none included."""
     run = eqx.filter_jit(
         lambda active: run_adaptation(VegasPlus(), key, Integrand(two_peaks), Grid(LO, HI, 16),
                                          5, 512, keep_samples=keep_samples, active=active)
@@ -160,6 +160,10 @@ def test_active_rounds_are_the_first_rounds_of_a_shorter_run(key, keep_samples):
         np.testing.assert_array_equal(state.grid.logits, ref_state.grid.logits)
         if keep_samples:
             np.testing.assert_array_equal(samples.x, ref_samples.x)
+    # None active: no round runs, the grid stays as it started.
+    parts, state, _ = run(jnp.int32(0))
+    assert np.all(np.asarray(parts.mean) == 0)
+    np.testing.assert_array_equal(state.grid.logits, Grid(LO, HI, 16).logits)
 
 
 def test_vegas_plus_rounds_without_diagnostics(key):

@@ -36,6 +36,7 @@ from .._integrand import ratio
 from .._progress import report
 from .._stats import Estimate, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
+from ..proposals import Grid
 from ._plan import BLOCK, MIN_BLOCKS_TO_STOP
 
 
@@ -94,6 +95,13 @@ def fine_grid_bins(block: int) -> int:
     at `grid_bins` there, `VegasPlus.coarse`).
     """
     return max(grid_bins(block), min(256, block // 8))
+
+
+@functools.partial(jax.jit, static_argnames="bins")
+def uniform_grid(lo, hi, *, bins):
+    """`Grid(lo, hi, bins)`, uniform, in one dispatch (eagerly, its checks and casts cost
+    ~0.2 ms, a tenth of a small `integrate` call). `lo < hi` is checked by the caller."""
+    return Grid(lo, hi, bins=bins)
 
 
 def training_rounds(budget: int, block: int) -> int:

@@ -129,10 +129,9 @@ import numpy as np
 
 from .._checks import is_concrete
 from .._format import concrete, number
-from ..proposals import Grid
-from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins
+from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, uniform_grid
 from ._mode_search import search_evaluations
-from ._pilot_grid import grid_qmc_pilot, grid_rounds
+from ._pilot_grid import grid_qmc_pilot, grid_rounds, round_figures, run_rounds
 from ._pilot_mixture import mixture_outlook, mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
@@ -280,9 +279,11 @@ def _first(choice, k):
 # The decisions between the pilot's stages, each one compiled program (run eagerly, their
 # dozens of small operations were ~1.5 s of compilation in a first call).
 @eqx.filter_jit
-def _screen(qmc: QMCFigures, v_grid, grid_blind):
-    """QMC against the young grid: `(the choice, the choice restricted to the two, whether
-    the young grid is dropped)`."""
+def _screen(qmc: QMCFigures, parts, samples, active, *, rounds, round_size):
+    """QMC against the young grid (its rounds' estimates and last `Samples`, `run_rounds`):
+    `(its figures, the choice, the choice restricted to the two, whether it is dropped)`."""
+    v_grid, grid_blind = round_figures(parts, samples, active, rounds=rounds,
+                                       round_size=round_size)
     # Nothing is carried through a young grid, nor seeded from it: unknown here.
     screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf, jnp.inf]),
                        jnp.stack([qmc.blind, grid_blind, True, True]))
@@ -294,7 +295,7 @@ def _screen(qmc: QMCFigures, v_grid, grid_blind):
     # after 10 carried through by QMC, against QMC's 0.05).
     qmc_cost, grid_cost = screened[1][:2]
     decided = (grid_cost > SCREEN_MARGIN * qmc_cost) & ~qmc.blind & ~qmc.heavy & ~qmc.separable
-    return screened, _first(screened, 2), decided
+    return (v_grid, grid_blind), screened, _first(screened, 2), decided
 
 
 @eqx.filter_jit
@@ -400,12 +401,12 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         return alone, None, None, screened_rest
     # Fine bins under a power-law tail, held either way (`VegasPlus.coarse`: may be traced).
     bins = fine_grid_bins if lo.size <= FINE_GRID_MAX_DIM else grid_bins
-    coarse, grid = ~qmc.heavy, Grid(lo, hi, bins=bins(round_size))
+    coarse, grid = ~qmc.heavy, uniform_grid(lo, hi, bins=bins(round_size))
     settings = dict(f=f, rounds=rounds, round_size=round_size, batched=batched)
-    v_grid, grid_blind, state, samples = grid_rounds(
-        key_screen, grid, jnp.int32(screen), coarse, **settings
+    parts, state, samples = run_rounds(key_screen, grid, jnp.int32(screen), coarse, **settings)
+    (v_grid, grid_blind), screened, screened_two, decided = _screen(
+        qmc, parts, samples, jnp.int32(screen), rounds=rounds, round_size=round_size
     )
-    screened, screened_two, decided = _screen(qmc, v_grid, grid_blind)
     if is_concrete(decided) and bool(decided):
         variance, cost, choice = screened_two
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))

@@ -35,35 +35,37 @@ GRID_QMC_MAX_VARIANCE = 9.0
 
 
 def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
-    """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
-    skipped, so one compiled program serves the screening and the training stage: ~1.5 s
-    of a first call): the last round's relative variance per evaluation, whether it saw
-    only zeros, the state after it and its `Samples`. With `coarse` (may be traced), a grid
-    of more bins than `grid_bins(round_size)` is refined at that many (`VegasPlus.coarse`).
-    The rounds are compiled for each integrand, their figures once for every integrand of
-    their shapes."""
-    parts, state, samples = _rounds(key, grid, active, coarse, f=f, rounds=rounds,
-                                    round_size=round_size, batched=batched)
-    figures = _round_figures(parts, samples.fx, samples.log_q, active, rounds=rounds,
-                             round_size=round_size)
+    """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_rounds`), measured:
+    the last round's relative variance per evaluation, whether it saw only zeros
+    (`round_figures`), the state after it and its `Samples`."""
+    parts, state, samples = run_rounds(key, grid, active, coarse, f=f, rounds=rounds,
+                                       round_size=round_size, batched=batched)
+    figures = _round_figures(parts, samples, active, rounds=rounds, round_size=round_size)
     return figures + (state, samples)
 
 
 @eqx.filter_jit
-def _rounds(key, grid, active, coarse, *, f, rounds, round_size, batched):
+def run_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
+    """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
+    skipped, so one compiled program serves the screening and the training stage: ~1.5 s
+    of a first call): `(the rounds' estimates, the state after the last, its `Samples`)`.
+    With `coarse` (may be traced), a grid of more bins than `grid_bins(round_size)` is
+    refined at that many (`VegasPlus.coarse`). The rounds are compiled for each integrand,
+    their figures (`round_figures`) once for every integrand of their shapes."""
     # The rounds skip their diagnostics: only the last one's variance is read, bounded in
-    # `_round_figures` from its values as its diagnostics would have bounded it.
+    # `round_figures` from its values as its diagnostics would have bounded it.
     rule = VegasPlus(diagnostics=False, coarse_bins=grid_bins(round_size), coarse=coarse)
     return run_adaptation(rule, key, Integrand(f, batched), grid, rounds, round_size,
                           keep_samples=True, active=active)
 
 
-@partial(jax.jit, static_argnames=("rounds", "round_size"))
-def _round_figures(parts, fx, log_q, active, *, rounds, round_size):
-    """`grid_rounds`'s figures: the last round's relative variance per evaluation (hedged by
-    the recent rounds' scatter, see `SCATTER_TRUST`) and whether it saw only zeros."""
+def round_figures(parts, samples, active, *, rounds, round_size):
+    """`run_rounds`'s figures (traceable; `grid_rounds` compiles them alone, `integrate`'s
+    pilot with what it decides from them): the last round's relative variance per
+    evaluation (hedged by the recent rounds' scatter, see `SCATTER_TRUST`) and whether it
+    saw only zeros."""
     last = active - 1
-    values, _ = ratio(fx, jnp.exp(log_q))
+    values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
     variance, _ = bounded_variance(parts.variance[last], parts.mean[last], tail_of(values))
     v_last = relative_variance(parts.mean[last], variance) * round_size
     # The scatter of the last SCATTER_ROUNDS rounds' means (the spread `method="adaptive"`
@@ -78,6 +80,9 @@ def _round_figures(parts, fx, log_q, active, *, rounds, round_size):
     heavy = (active >= SCATTER_ROUNDS) & (v_last > SCATTER_TRUST * v_scatter)
     hedged = jnp.sqrt(v_last * v_scatter)  # the scatter of 5 rounds is itself uncertain
     return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0)
+
+
+_round_figures = partial(jax.jit, static_argnames=("rounds", "round_size"))(round_figures)
 
 
 def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):

@@ -9,7 +9,6 @@ import jax.numpy as jnp
 
 from .._checks import is_concrete
 from .._progress import progress_bar
-from ..proposals import Grid
 from ._adaptive import (
     MIN_STREAM_BLOCKS,
     adaptive_block,
@@ -20,6 +19,7 @@ from ._adaptive import (
     refining_rounds,
     train_vegas_plus,
     training_rounds,
+    uniform_grid,
 )
 from ._pilot_grid import grid_rounds
 from ._plan import ADAPTIVE_PROBE_REACH, PROBE_BUDGET, plan
@@ -86,7 +86,7 @@ class Runner:
             block = adaptive_block(sizing)
             rounds = training_rounds(sizing, block)
             train_key, key = jax.random.split(key)
-            grid = Grid(self.lo, self.hi, bins=grid_bins(block))
+            grid = uniform_grid(self.lo, self.hi, bins=grid_bins(block))
             if sizing == budget:
                 state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
                 break
