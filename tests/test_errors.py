@@ -88,6 +88,21 @@ def test_rtol_below_the_dtype_floor_asks_for_float64():
     assert est.converged
 
 
+def test_an_atol_below_the_rounding_floor_stops_there_and_says_so():
+    # float32's floor for this integral is 4.8e-7 x 0.42 = 2e-7: no budget meets atol=1e-12.
+    # The stream stops where its error bar reaches the floor, not at max_n (which it spent
+    # before, 2^30 by default), and the warning says why and what would meet it.
+    f = lambda x: jnp.exp(-jnp.sum(x**2))
+    lo32, hi32 = jnp.zeros(3, jnp.float32), jnp.ones(3, jnp.float32)
+    with pytest.warns(jaxmc.ReliabilityWarning,
+                      match=r"rounding floor of float32.*float64.*relax `atol` to at least 2.0e-07"):
+        est = jaxmc.integrate(KEY, f, lo32, hi32, atol=1e-12, max_n=2**26, method="qmc")
+    assert not est.converged and est.n <= 2**20
+    floor = jaxmc.stats.rounding_floor(jnp.float32) * est.mean
+    np.testing.assert_allclose(est.stderr, floor, rtol=1e-3)
+    assert abs(float(est.mean) - 0.41653838588663810) < 5 * float(est.stderr)
+
+
 def test_batched_shape_error_speaks_of_the_users_batch():
     wrong = lambda x: x[:3, 0]  # not one value per point
     messages = []

@@ -191,6 +191,9 @@ def test_progress_reports(capfd):
         ({"n": 10, "nonfinite": "ignore"}, ValueError, "nonfinite"),
         ({"n": 10, "mesh": "cpu"}, TypeError, "mesh"),
         ({"n": 10, "chunk": 0}, ValueError, "chunk"),
+        # (the default method's own minimum, not that of the QMC it runs on such budgets)
+        ({"n": 10}, ValueError, r"`n` must be >= 16 for method 'auto'"),
+        ({"rtol": 0.1, "max_n": 10}, ValueError, r"`max_n` must be >= 16 for method 'auto'"),
     ],
 )
 def test_bad_input(kwargs, error, match):

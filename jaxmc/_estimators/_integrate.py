@@ -21,7 +21,6 @@ from jax.sharding import AbstractMesh, AxisType, Mesh
 
 from .._checks import (
     MAX_COUNT,
-    as_real_array,
     check_bounds,
     check_callable,
     check_choice,
@@ -33,11 +32,12 @@ from .._checks import (
 from .._diagnostics import warn_if_unreliable
 from .._format import concrete
 from .._integrand import bind
-from .._stats import Estimate, ReliabilityWarning, estimate_fields, rounding_floor
+from .._stats import Estimate, ReliabilityWarning, estimate_fields
 from ._adaptive import adaptive_block, training_rounds
 from ._auto import Pilot, run_pilot, split_keys
-from ._plan import PROBE_BUDGET, PROBE_REACH
+from ._plan import PROBE_BUDGET, PROBE_REACH, QMC_REPLICAS
 from ._runner import Runner
+from ._tolerance import check_tolerance, unmet_tolerance
 
 
 METHODS = ("auto", "plain", "qmc", "stratified", "adaptive")
@@ -157,7 +157,9 @@ def integrate(
           jittered grid; variance from the spread of block means).
     - `max_n`: the budget when only tolerances are given (default $2^{30}$),
       a cap rather than a size: the stream checks the tolerance from its
-      first blocks on, and with `rtol` `"auto"`'s pilot is first sized for
+      first blocks on, and stops, unmet, where its error bar reaches the
+      dtype's rounding floor (an `atol` below it; an `rtol` below it is
+      refused), and with `rtol` `"auto"`'s pilot is first sized for
       $2^{17}$ evaluations (about $3\cdot10^4$ of them), sized anew for
       `max_n` only when its winner, a grid or a mixture, needs more than four
       times that for `rtol` (the probe's evaluations then count in `n`, not
@@ -178,7 +180,8 @@ def integrate(
       on it beyond float rounding.
     - `nonfinite`: `"raise"` (default) raises `FloatingPointError` when some
       $f/p$ was not finite; `"drop"` lets those samples contribute zero (they
-      are still counted in `n_nonfinite`).
+      are still counted in `n_nonfinite`, and `jaxmc.stats.unreliable` flags
+      the result, but, dropped on request, they raise no warning).
     - `mesh`: a `jax.sharding.Mesh` whose devices share the blocks, over all
       its axes, whatever their names. Default: the context mesh of
       `jax.set_mesh`, else all devices of the default backend (of every
@@ -196,8 +199,8 @@ def integrate(
       traced; Python `int`s and `bool`s stay static (a new value compiles).
 
     **Returns:** an `IntegrationEstimate` (an `Estimate` with `method`, `pilot`
-    and `converged`). Outside `jit`, a tolerance the budget could not meet
-    warns with `jaxmc.ReliabilityWarning`.
+    and `converged`). Outside `jit`, a tolerance not met, within the budget or
+    above the rounding floor, warns with `jaxmc.ReliabilityWarning`, saying which.
 
     Without tolerances the loop has a fixed trip count and is differentiable
     (in `args` too); with tolerances it is a `while_loop` (forward-mode only).
@@ -230,8 +233,8 @@ def integrate(
     lo, hi = check_bounds(lo, hi, finite_volume=True)
     method = check_choice(method, "method", METHODS)
     nonfinite = check_choice(nonfinite, "nonfinite", ("raise", "drop"))
-    rtol = _check_tolerance(rtol, "rtol", lo.dtype)
-    atol = _check_tolerance(atol, "atol", lo.dtype)
+    rtol = check_tolerance(rtol, "rtol", lo.dtype)
+    atol = check_tolerance(atol, "atol", lo.dtype)
     progress = check_flag(progress, "progress")
     batched = check_flag(batched, "batched")
     if n is None and rtol is None and atol is None:
@@ -257,6 +260,11 @@ def integrate(
                  for tol in (rtol, atol)))
     pilot, spent = None, 0
     if method == "auto" and budget < _AUTO_MIN_BUDGET:
+        if budget < 2 * QMC_REPLICAS:  # (plan's own message would name "qmc")
+            raise ValueError(
+                f"`{'n' if n is not None else 'max_n'}` must be >= {2 * QMC_REPLICAS} for method "
+                f"'auto' (below {_AUTO_MIN_BUDGET} evaluations it runs QMC alone), got {budget}."
+            )
         method = "qmc"  # too small a budget to share with a pilot
     # With only a tolerance, rtol among it, and outside jit, a pilot or a training is first
     # sized for PROBE_BUDGET (see there).
@@ -299,13 +307,8 @@ def integrate(
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
     if tolerant and is_concrete(converged) and not bool(converged):
-        warnings.warn(
-            f"integrate: the tolerance was not met within the budget of {budget:,} evaluations "
-            f"(mean {np.asarray(est.mean)}, stderr {np.asarray(est.stderr)}); raise `max_n`/`n`, "
-            "or relax `rtol`/`atol`.",
-            ReliabilityWarning,
-            stacklevel=2,
-        )
+        warnings.warn(unmet_tolerance(est, budget, run.rtol, run.atol, lo.dtype),
+                      ReliabilityWarning, stacklevel=2)
     # (Values dropped on request, with nonfinite="drop", are not news.)
     fields = estimate_fields(est)
     if nonfinite == "drop":
@@ -366,40 +369,6 @@ def _blocks_mesh(mesh: Mesh | None) -> Mesh | AbstractMesh:
         # Inside a user's shard_map every device integrates on its own.
         return AbstractMesh((1,), ("blocks",))
     return context
-
-
-def _check_tolerance(tol: Any, name: str, dtype: Any) -> Any:
-    """A tolerance: one real scalar >= 0 (checked in value when concrete). A relative
-    tolerance below the rounding floor of the integration `dtype` cannot be met."""
-    if tol is None:
-        return None
-    if isinstance(tol, (bool, np.bool_)):
-        raise TypeError(f"`{name}` must be a real number, got {tol!r}.")
-    value = as_real_array(tol, f"`{name}` must be a real number")
-    if value.shape != ():
-        raise ValueError(
-            f"`{name}` must be a scalar (one tolerance for every component), got shape {value.shape}."
-        )
-    if is_concrete(tol):  # (under jit, `value` may be staged even for a Python float)
-        value = float(np.asarray(tol))
-        if not np.isfinite(value) or value < 0:
-            raise ValueError(f"`{name}` must be a finite number >= 0, got {value!r}.")
-        if name == "rtol" and 0 < value < rounding_floor(dtype):
-            raise ValueError(_unreachable_rtol(value, dtype))
-    return tol
-
-
-def _unreachable_rtol(rtol: float, dtype: Any) -> str:
-    floor, dtype = rounding_floor(dtype), np.dtype(dtype)
-    fix = f"use rtol >= {floor:.1e}"
-    if dtype != np.float64:
-        x64 = 'jax.config.update("jax_enable_x64", True)'
-        how = "pass float64 bounds `lo`, `hi` (float64 is on)" if jax.config.jax_enable_x64 else x64
-        fix = f"integrate in float64 ({how}), or {fix}"
-    return (
-        f"`rtol`={rtol:g} is below what {dtype.name} arithmetic can deliver: the rounding error "
-        f"of the mean is about {floor:.1e} of its magnitude; {fix}."
-    )
 
 
 _NONFINITE_MESSAGE = (

@@ -59,7 +59,7 @@ from jax.sharding import PartitionSpec
 
 from .. import _random
 from .._box import to_box
-from .._diagnostics import bounded_variance
+from .._diagnostics import bounded_variance, rounding_floor
 from .._fit._vegas import stratified_unit_points
 from .._integrand import evaluate, ratio
 from .._points._common import uint32_to_unit
@@ -84,6 +84,17 @@ def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
     """Block `position` (`2**log2_size` points on $[0,1)^d$) of the Sobol' sequence
     scrambled by `scramble = sobol_scramble(key, d)`: one QMC replica's next net block."""
     return uint32_to_unit(sobol_block(*scramble, position, log2_size), dtype, centred=True)
+
+
+def at_rounding_floor(stderr: jax.Array, tail) -> jax.Array:
+    """Whether a standard error is at the floor of its dtype's rounding error, which no
+    budget lowers (`jaxmc.stats.rounding_floor`, eq. 13's error bar floored as `diagnosed`
+    floors it): a tolerance below it stops the stream there, unmet, rather than spending
+    the rest of `max_n` (2^30 by default) on it. `tail`: the run's `Tail` (`None`: never)."""
+    if tail is None:
+        return jnp.zeros(jnp.shape(stderr), bool)
+    floor = rounding_floor(tail.abs_sum.dtype) * tail.abs_sum / jnp.maximum(tail.count, 1)
+    return stderr <= floor * (1 + 1e-3)  # (a statistical error just above it: as good as)
 
 
 def _vegas_plus_block(key, frozen, n, f, batched):
@@ -244,7 +255,8 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             else:
                 at_check = (t >= 1) & ((t & (t - 1)) == 0)
             est = stream_estimate(*carry, plan.replicas)
-            passed = jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
+            met = est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean))
+            passed = jnp.all(met | at_rounding_floor(est.stderr, carry[0].tail))
             return tuple(jnp.where(at_check, new, old)
                          for new, old in zip((passed, checks[0]), checks))
 
