@@ -38,7 +38,10 @@ class Runner:
 
     def _stream(self, key, frozen, run_plan, done=0):
         """Stream `run_plan`, `done` evaluations (a pilot's, a training's) already spent."""
-        with progress_bar(self.progress, done + run_plan.budget, done):
+        # With a tolerance the run may stop anywhere before its budget (`max_n`, 2^30 by
+        # default): the bar counts evaluations, with no total nor time left.
+        total = None if self.tolerant else done + run_plan.budget
+        with progress_bar(self.progress, total, done):
             return stream_on_mesh(
                 key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, plan=run_plan,
                 mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,

@@ -151,6 +151,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
     dtype = lo.dtype
     volume = jnp.prod(hi - lo)
     per_sample = method in ("plain", "importance")
+    bar_total = None if tolerant else plan.budget  # (a tolerance may stop it anywhere)
     if method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
             jax.random.split(key, plan.replicas)
@@ -234,7 +235,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         m, e, b = run_step(t)
         carry = (merge(total, m), evaluations + e, bad + b)
         if progress:
-            _report(stream_estimate(*carry, plan.replicas), plan.budget, mesh, last=False)
+            _report(stream_estimate(*carry, plan.replicas), bar_total, mesh, last=False)
         return carry
 
     if not tolerant:
@@ -291,7 +292,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         _, carry, _ = walk(state, plan.per_step, plan.steps)
     est = stream_estimate(*carry, plan.replicas)
     if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
-        _report(est, plan.budget, mesh, last=True)
+        _report(est, bar_total, mesh, last=True)
     return est
 
 
