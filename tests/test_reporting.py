@@ -172,6 +172,15 @@ def test_progress_bar_under_jit_stops_with_the_tolerance(capsys):
     assert "/" not in final.split("eval")[0] and f"{2**21 / 1e6:.2f}M" not in final
 
 
+def test_progress_bar_outside_jit_has_no_total_with_a_tolerance(capsys):
+    # The bar `integrate` opens around its stream (not the loop's own, as under jit).
+    est = jaxmc.integrate(jax.random.key(9), F, [0.0, 0.0], [1.0, 1.0], rtol=2e-3,
+                          max_n=2**21, method="plain", chunk=2**14, progress=True)
+    final = last_line(capsys.readouterr().err)
+    assert bool(est.converged) and int(est.n) < 2**21
+    assert "%" not in final and str(est) in final and f"{2**21 / 1e6:.2f}M" not in final
+
+
 def test_adapt_progress_bar(capfd):
     f = lambda x: jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.02)  # noqa: E731
     grid = jaxmc.proposals.Grid(jnp.zeros(2), jnp.ones(2), bins=16)
