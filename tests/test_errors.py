@@ -95,7 +95,7 @@ def test_an_atol_below_the_rounding_floor_stops_there_and_says_so():
     f = lambda x: jnp.exp(-jnp.sum(x**2))
     lo32, hi32 = jnp.zeros(3, jnp.float32), jnp.ones(3, jnp.float32)
     with pytest.warns(jaxmc.ReliabilityWarning,
-                      match=r"rounding floor of float32.*float64.*relax `atol` to at least 2.0e-07"):
+                      match=r"rounding floor of float32.*float64.*at least 2.0e-07 \(`atol`"):
         est = jaxmc.integrate(KEY, f, lo32, hi32, atol=1e-12, max_n=2**26, method="qmc")
     assert not est.converged and est.n <= 2**20
     floor = jaxmc.stats.rounding_floor(jnp.float32) * est.mean

@@ -71,7 +71,8 @@ def unmet_tolerance(est: Estimate, budget: int, rtol, atol, dtype: Any) -> str:
             f"integrate: the standard error reached the rounding floor of {np.dtype(dtype).name} "
             f"arithmetic (about {floor:.1e} of the mean |f/p|) after {int(est.n):,} "
             f"evaluations, unmet (mean {mean}, stderr {stderr}); no budget meets the tolerance: "
-            f"{_higher_precision(dtype, f'relax `atol` to at least {reached:.1e}')}."
+            f"{_higher_precision(dtype, f'ask for a standard error of at least {reached:.1e}')}"
+            " (`atol`, or `rtol` times |mean|)."
         )
     return (
         f"integrate: the tolerance was not met within the budget of {budget:,} evaluations "
