@@ -51,6 +51,7 @@ __all__ = [
     "empty_tail",
     "merge_tails",
     "gather_tails",
+    "stderr_floor",
     "floored_variance",
     "bounded_variance",
     "effective_sample_size",
@@ -226,11 +227,16 @@ def gather_tails(t: Tail, axes: tuple[str, ...]) -> Tail:
     )
 
 
+def stderr_floor(t: Tail) -> jax.Array:
+    r"""The smallest standard error contributions `t` can claim:
+    $\mathrm{rounding\_floor}\cdot\frac1N\sum|c_i|$ (per component)."""
+    return rounding_floor(t.abs_sum.dtype) * t.abs_sum / jnp.maximum(t.count, 1)
+
+
 @jax.jit
 def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
-    r"""`variance` of the mean, at least $(\mathrm{rounding\_floor}\cdot\frac1N\sum|c_i|)^2$."""
-    floor = rounding_floor(t.abs_sum.dtype) * t.abs_sum / jnp.maximum(t.count, 1)
-    return jnp.maximum(variance, (floor**2).astype(jnp.result_type(variance)))
+    r"""`variance` of the mean, at least `stderr_floor(t)` squared."""
+    return jnp.maximum(variance, (stderr_floor(t) ** 2).astype(jnp.result_type(variance)))
 
 
 # Above this tail shape the values follow a power law (an unbounded integrand, or f/p with a

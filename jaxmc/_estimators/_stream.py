@@ -59,7 +59,7 @@ from jax.sharding import PartitionSpec
 
 from .. import _random
 from .._box import to_box
-from .._diagnostics import bounded_variance, rounding_floor
+from .._diagnostics import bounded_variance, stderr_floor
 from .._fit._vegas import stratified_unit_points
 from .._integrand import evaluate, ratio
 from .._points._common import uint32_to_unit
@@ -88,13 +88,12 @@ def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
 
 def at_rounding_floor(stderr: jax.Array, tail) -> jax.Array:
     """Whether a standard error is at the floor of its dtype's rounding error, which no
-    budget lowers (`jaxmc.stats.rounding_floor`, eq. 13's error bar floored as `diagnosed`
-    floors it): a tolerance below it stops the stream there, unmet, rather than spending
-    the rest of `max_n` (2^30 by default) on it. `tail`: the run's `Tail` (`None`: never)."""
+    budget lowers (`_diagnostics.stderr_floor`, where `diagnosed` floors eq. 13's error
+    bar): a tolerance below it stops the stream there, unmet, rather than spending the rest
+    of `max_n` (2^30 by default) on it. `tail`: the run's `Tail` (`None`: never)."""
     if tail is None:
         return jnp.zeros(jnp.shape(stderr), bool)
-    floor = rounding_floor(tail.abs_sum.dtype) * tail.abs_sum / jnp.maximum(tail.count, 1)
-    return stderr <= floor * (1 + 1e-3)  # (a statistical error just above it: as good as)
+    return stderr <= stderr_floor(tail) * (1 + 1e-3)  # (just above it: as good as)
 
 
 def _vegas_plus_block(key, frozen, n, f, batched):
