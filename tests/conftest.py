@@ -1,18 +1,39 @@
 import atexit
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 
 
-# XLA's CPU backend does not optimise in tests (level 0 of 3): compilation is most of the
-# suite's time (measured: level 2 -> 1, 916 s -> 790 s for the suite; 1 -> 0, 16:06 -> 14:39
-# on two cores, the few tests whose time is the compiled code's own, at 10^9 samples, run at
-# level 1 in their subprocess). No check may depend on how the compiler optimises (a GPU
-# fuses differently again); the benchmarks measure the default level. Set before JAX starts
-# its backend; subprocesses that set their own flags keep those.
+# XLA's CPU backend compiles for speed of compilation in tests: no backend optimisation
+# (level 0 of 3), the elemental emitters rather than the fusion emitters, and one LLVM
+# module per program. Compilation is most of the suite's time (measured on two cores: level
+# 2 -> 1, 916 s -> 790 s for the suite; 1 -> 0, 16:06 -> 14:39; the emitters and the one
+# module, 17:35 -> 11:12, tests/test_integrate_auto.py and tests/test_args.py 230 s ->
+# 105 s, a traced `auto` 12.0 s -> 7.8 s). No check may depend on how the compiler
+# optimises (a GPU fuses differently again); the benchmarks measure the defaults. Set
+# before JAX starts its backend, for this process, the xdist workers (they inherit the
+# variable) and the tests' subprocesses (`helpers.subprocess_xla_flags`); subprocesses
+# that set their own flags keep those. XLA aborts on a flag it does not know, so the
+# emitter flags are kept only if a jaxlib started with them runs.
 _LEVEL = "--xla_backend_optimization_level"
-if _LEVEL not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LEVEL}=0".strip()
+_EMITTERS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_parallel_codegen_split_count=1")
+
+
+def _accepted(flags: str) -> bool:
+    probe = "import jax, jax.numpy as jnp; jax.jit(jnp.sin)(1.0).block_until_ready()"
+    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
+    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True).returncode == 0
+
+
+if "JAXMC_TEST_XLA_FLAGS" not in os.environ:
+    _flags = f"{_LEVEL}=0"
+    if _accepted(" ".join((_flags,) + _EMITTERS)):
+        _flags = " ".join((_flags,) + _EMITTERS)
+    os.environ["JAXMC_TEST_XLA_FLAGS"] = _flags
+    if _LEVEL not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flags}".strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -8,6 +8,7 @@ for essentially every choice of keys.
 
 import contextlib
 import logging
+import os
 
 import equinox as eqx
 import jax
@@ -19,11 +20,12 @@ import jaxmc
 from jaxmc._diagnostics import warn_if_unreliable
 
 
-# Subprocesses (notebook kernels, multi-device and multi-process runs) compile with
-# XLA's backend optimisation off. They check that code runs and that device layouts agree
-# bit for bit among runs compiled alike, not the speed of the compiled code; their small
-# sizes make compilation most of their time (measured: notebook 05, 89 s -> 48 s).
-SUBPROCESS_XLA_FLAGS = "--xla_backend_optimization_level=0"
+# Subprocesses (notebook kernels, multi-device and multi-process runs) compile as the
+# tests do (`JAXMC_TEST_XLA_FLAGS`, set by conftest.py: no backend optimisation, the
+# elemental emitters). They check that code runs and that device layouts agree bit for bit
+# among runs compiled alike, not the speed of the compiled code; their small sizes make
+# compilation most of their time (measured: notebook 05, 89 s -> 48 s at level 0).
+SUBPROCESS_XLA_FLAGS = os.environ.get("JAXMC_TEST_XLA_FLAGS", "--xla_backend_optimization_level=0")
 
 
 def subprocess_xla_flags(devices: int | None = None) -> str:
