@@ -10,7 +10,7 @@ import tempfile
 # (level 0 of 3), the elemental emitters rather than the fusion emitters, and one LLVM
 # module per program. Compilation is most of the suite's time (measured on two cores: level
 # 2 -> 1, 916 s -> 790 s for the suite; 1 -> 0, 16:06 -> 14:39; the emitters and the one
-# module, 17:35 -> 11:12, tests/test_integrate_auto.py and tests/test_args.py 230 s ->
+# module, 17:35 -> 10:01 (`.ci/run`), tests/test_integrate_auto.py and tests/test_args.py 230 s ->
 # 105 s, a traced `auto` 12.0 s -> 7.8 s). No check may depend on how the compiler
 # optimises (a GPU fuses differently again); the benchmarks measure the defaults. Set
 # before JAX starts its backend, for this process, the xdist workers (they inherit the
