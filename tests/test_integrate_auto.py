@@ -3,6 +3,7 @@
 import math
 import re
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -106,21 +107,29 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     # The whole nets' figures are the same whether their first quarter was evaluated
     # by the early look or with the rest (to rounding: the sums fuse differently).
     from jaxmc._estimators._auto import _qmc_early_look, _qmc_pilot
-    from jaxmc._estimators._pilot_nets import clear_win_gain, measure_nets, net_values
+    from jaxmc._estimators._pilot_nets import (
+        clear_win_gain,
+        grid_outlook,
+        measure_nets,
+        net_values,
+    )
 
     lo, hi = box(3)
     # (A narrow peak: no clear win, early or on the whole nets.)
     key, f = jax.random.key(3), peak(3, s=0.03)
     settings = dict(f=f, per_replica=512, batched=False)
     early, bins, early_win, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
-    reused, _ = _qmc_pilot(key, lo, hi, (early, bins), early_win, growth=8.0, **settings)
-    whole = measure_nets(net_values(key, lo, hi, f, False, 0, 4, 7), 8.0, clear_win_gain(512))
+    reused, _, _ = _qmc_pilot(key, lo, hi, (early, bins), early_win, growth=8.0, **settings)
+    y, whole_bins = net_values(key, lo, hi, f, False, 0, 4, 7, True)
+    whole = measure_nets(y, 8.0, clear_win_gain(512))
+    whole = eqx.tree_at(lambda q: q.grid_outlook, whole, grid_outlook(whole_bins, y))
+    assert float(whole.grid_outlook) > 0
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(reused)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10)
     # Under jit, where an early clear win cannot end the pilot, the verdict stands.
     assert not bool(early_win) and not bool(reused.clear_win)
-    stands, _ = _qmc_pilot(key, lo, hi, (early, bins), jnp.asarray(True), growth=8.0,
-                           **settings)
+    stands, _, _ = _qmc_pilot(key, lo, hi, (early, bins), jnp.asarray(True), growth=8.0,
+                              **settings)
     assert bool(stands.clear_win)
 
 
@@ -149,19 +158,33 @@ def test_auto_trains_a_grid_that_is_still_learning():
         assert abs(float(est.mean) / erf(1 / (2 * alpha)) ** 8 - 1) < 0.01, seed
 
 
-def test_auto_drops_a_young_grid_far_costlier_than_qmc():
-    # A ball's indicator in 3-D: QMC's pilot beats plain MC 8-10x (no clear win); after 3
-    # rounds the grid measured 20-160x QMC's projected cost per unit variance. Dropped at the
-    # screen, the stream keeps the budget of 3 rounds, and its nets are of 2^14 points
-    # instead of 2^13. (Keys 0, 1, 3; key 2 trains the grid in full, key 5 is a clear win.)
-    r = 0.45
-    f = lambda x: jnp.where(jnp.sum((x - 0.5) ** 2) < r**2, 1.0, 0.0)
-    exact = 4 / 3 * np.pi * r**3
-    for seed in (0, 1, 3):
-        est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(3), jnp.ones(3), n=100_000)
-        assert est.method == "qmc" and est.pilot.candidates == ("qmc", "adaptive"), seed
-        assert est.pilot.evaluations[1] == 3 * 2048, est.pilot.evaluations  # 3 rounds of 2^11
-        assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
+def test_auto_drops_a_grid_whose_outlook_is_hopeless_before_screening_it():
+    # A ball's indicator in 3-D and i-flow's 4-D camel: QMC's pilot beats plain MC 8-10x (no
+    # clear win), at a cost below any mixture's seen, and a product density fitted to its
+    # values costs over 4x QMC (on the ball the young grid measured 20-160x after 3 rounds,
+    # on the camel 6-7x, and QMC won). No grid is screened: the stream keeps the screen's
+    # budget (5 nets of 2^14 either way), which is left unspent. (On keys 2 and 4 of the
+    # ball, 0, 2, 3 and 5 of the camel, QMC costs more and the young grid is screened.)
+    # Under jit, where every stage runs, the outlook decides as well.
+    from jaxmc._estimators._pilot_nets import OUTLOOK_MARGIN
+
+    r, alpha = 0.45, 0.2
+    ball = lambda x: jnp.where(jnp.sum((x - 0.5) ** 2) < r**2, 1.0, 0.0)
+    pre = (1 / (alpha * np.sqrt(np.pi))) ** 4
+    camel = lambda x: 0.5 * pre * sum(jnp.exp(-jnp.sum((x - c) ** 2) / alpha**2)
+                                      for c in (1 / 3, 2 / 3))
+    camel_exact = (0.5 * (erf(1 / (3 * alpha)) + erf(2 / (3 * alpha)))) ** 4
+    for f, d, exact, seeds in [(ball, 3, 4 / 3 * np.pi * r**3, (0, 1, 3)),
+                               (camel, 4, camel_exact, (1, 4))]:
+        for seed in seeds:
+            est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
+            assert est.method == "qmc" and est.pilot.candidates == ("qmc",), (seed, est.pilot)
+            assert est.pilot.evaluations == (4096,) and int(est.n) == 4096 + 5 * 2**14, seed
+            assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
+    traced = jax.jit(lambda k: jaxmc.integrate(k, ball, jnp.zeros(3), jnp.ones(3), n=100_000))
+    est = traced(jax.random.key(0))
+    assert int(est.pilot.choice) == 0 and OUTLOOK_MARGIN == 4
+    assert abs(float(est.mean) - 4 / 3 * np.pi * r**3) < 5 * float(est.stderr)
 
 
 def test_auto_drops_a_young_grid_a_few_times_costlier_than_qmc():

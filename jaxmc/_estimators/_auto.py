@@ -22,20 +22,19 @@ The candidates:
   round's own variance is `SCATTER_TRUST` times above it: a round's variance
   comes from pairs of points in hypercubes, which a peak the grid has not yet
   resolved inflates (100-1000x what the grid then realised on a 16-D camel, a
-  5-D posterior and a corner singularity). A young grid's variance says little of the
-  trained one's (measured after 3 and 10 rounds: from 10x worse, on a 16-D
-  discontinuity, to 1000x better, on a 5-D posterior), so the grid is dropped
-  after `SCREEN_ROUNDS` rounds only when, as it stands, it is `SCREEN_MARGIN`
-  times costlier than a QMC pilot that measured the integrand, and never when
-  QMC's values have a power-law tail (a young grid's rounds are then as
-  heavy-tailed: $x^{-1/2}$ in 2-D measured 35-110 after 3 rounds, 0.4-0.6 after
-  10; a young grid on the 8-D i-flow Gaussian measured 80 against QMC's 18, then
-  trained to 0.35); otherwise it trains in full and the choice is made on the
-  trained grid. Under such a tail, in up to `FINE_GRID_MAX_DIM` dimensions, its
-  bins are `fine_grid_bins` (as vegas's many increments, they resolve a singularity:
-  2.5x and 9x lower variance at 1e5). If the grid wins it goes on as `method="adaptive"` does
-  after training (refining rounds, then with a tolerance a frozen stream); if QMC
-  wins, the training was the price of knowing.
+  5-D posterior and a corner singularity). It is not trained at all where a product
+  density fitted to QMC's values would cost `OUTLOOK_MARGIN` times QMC
+  (`outlook_drops_grid`). A young grid's variance says little of the trained one's
+  (`run_pilot`), so the grid is dropped after `SCREEN_ROUNDS` rounds only when, as it
+  stands, it is `SCREEN_MARGIN` times costlier than a QMC pilot that measured the
+  integrand, and never when QMC's values have a power-law tail (a young grid's rounds are then
+  as heavy-tailed: $x^{-1/2}$ in 2-D measured 35-110 after 3 rounds, 0.4-0.6 after 10; a young
+  grid on the 8-D i-flow Gaussian measured 80 against QMC's 18, then trained to 0.35); otherwise
+  it trains in full and the choice is made on the trained grid. Under such a tail, in up to
+  `FINE_GRID_MAX_DIM` dimensions, its bins are `fine_grid_bins` (as vegas's many increments,
+  they resolve a singularity: 2.5x and 9x lower variance at 1e5). If the grid wins it goes on
+  as `method="adaptive"` does after training (refining rounds, then with a tolerance a frozen
+  stream); if QMC wins, the training was the price of knowing.
 - `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$
   with values $f/q$ (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's
   pilot's, measured and projected as its are): importance sampling from the
@@ -101,20 +100,17 @@ The candidates:
   fall faster than $f$ (`_with_wide_gaussian`). What is left streams from it
   (`method="importance"` blocks of `_stream`), to the budget or the tolerance.
 
-The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock
-readings, so `"auto"` is deterministic in `(key, n)`: the grid's map, its
-training and the stratified allocation make a VEGAS+ evaluation of a cheap
-integrand 4-7x dearer than a Sobol' point on a CPU (0.17 s against 0.04 s per
-$10^6$ in 4-D, steady state), and about as dear for an integrand that costs more
-than the map; 3 sits between. A Sobol' point carried through the grid's map cost
-2.4-4x a bare one ($10^6$ points in 4-16 D, cheap integrands): 2. A draw from
-the mixture inverts truncated normal CDFs and evaluates both its parts'
-densities at every point: 0.17-0.74 s per $10^6$ in 2-16 D (float64, 8
-components, a 256-bin grid), and a whole `"auto"` call at $10^6$ that
-streamed from it took 1.7-2.3x as long as `method="adaptive"` on vegas's 4-D
-and i-flow's 8-D Gaussians (it was 3-5x before the grid's density and the truncated normal's
-table were sped up; 12 was set then). 12 keeps the mixture for the large gains
-(100-1000x on a correlated posterior), not close calls. The pilot's evaluations
+The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock readings, so
+`"auto"` is deterministic in `(key, n)`: the grid's map, its training and the stratified
+allocation make a VEGAS+ evaluation of a cheap integrand 4-7x dearer than a Sobol' point on a
+CPU (0.17 s against 0.04 s per $10^6$ in 4-D, steady state), and about as dear for an
+integrand that costs more than the map; 3 sits between. A Sobol' point carried through the
+grid's map cost 2.4-4x a bare one ($10^6$ points in 4-16 D, cheap integrands): 2. A draw from
+the mixture inverts truncated normal CDFs and evaluates both its parts' densities at every
+point: 0.17-0.74 s per $10^6$ in 2-16 D (float64, 8 components, a 256-bin grid), and a whole
+`"auto"` call at $10^6$ that streamed from it took 1.7-2.3x as long as `method="adaptive"` on
+vegas's 4-D and i-flow's 8-D Gaussians (3-5x when 12 was set). 12 keeps the mixture for the
+large gains (100-1000x on a correlated posterior), not close calls. The pilot's evaluations
 count in the result's `n` but not in its mean: the streamed estimate uses fresh
 randomness, independent of the choice, so it stays unbiased.
 """
@@ -140,6 +136,7 @@ from ._pilot_nets import (
     clear_win_gain,
     early_look_figures,
     net_values,
+    outlook_drops_grid,
     pilot_qmc_points,
     whole_nets_figures,
 )
@@ -153,6 +150,7 @@ MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
 # The lowest relative variance per evaluation expected of a mixture seeded from the
 # grid: measured 0.02-0.07 on vegas's and i-flow's Gaussians and camels at 1e5.
 MIXTURE_FLOOR = 0.01
+_OUTLOOK_COSTS = (RELATIVE_COST["adaptive"], RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
 SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
 # A mixture whose figure on the grid's points (`mixture_outlook`) costs this many times QMC's
 # or the grid's is not measured. The ratio, 4 keys at 1e5 and 1e6: 8.9-68 on x^-1/3 in 6-D,
@@ -246,8 +244,9 @@ def _early_verdict(bins, y, *, growth, bar):
 
 def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured: `(QMCFigures,
-    QMC's lone `Pilot`)`. `early`, `early_win`: their first quarter's values and bins, and its
-    verdict (`_qmc_early_look`); the rest is evaluated here; an early clear win stands."""
+    QMC's lone `Pilot`, whether they drop the grid, `outlook_drops_grid`)`. `early`,
+    `early_win`: their first quarter's values and bins, and its verdict (`_qmc_early_look`);
+    the rest is evaluated here; an early clear win stands."""
     rest = net_values(key, lo, hi, f, batched, 1, 3, (per_replica // 4).bit_length() - 1, True)
     return _qmc_figures(early, rest, early_win, growth=growth, bar=clear_win_gain(per_replica))
 
@@ -256,7 +255,7 @@ def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched
 def _qmc_figures(early, rest, early_win, *, growth, bar):
     y, bins = (jnp.concatenate(parts, axis=1) for parts in zip(early, rest))
     qmc = whole_nets_figures(bins, y, early_win, growth, bar)
-    return qmc, _alone(qmc, y.shape[1] * QMC_REPLICAS)
+    return qmc, _alone(qmc, y.shape[1] * QMC_REPLICAS), outlook_drops_grid(qmc, *_OUTLOOK_COSTS)
 
 
 def _choose(qmc: QMCFigures, variance, blind):
@@ -284,7 +283,8 @@ def _screen(qmc: QMCFigures, parts, samples, active, *, rounds, round_size):
     `(its figures, the choice, the choice restricted to the two, whether it is dropped)`."""
     v_grid, grid_blind = round_figures(parts, samples, active, rounds=rounds,
                                        round_size=round_size)
-    # Nothing is carried through a young grid, nor seeded from it: unknown here.
+    # Nothing is carried through a young grid, nor seeded from it; one its outlook drops is none.
+    v_grid = jnp.where(outlook_drops_grid(qmc, *_OUTLOOK_COSTS), jnp.inf, v_grid)
     screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf, jnp.inf]),
                        jnp.stack([qmc.blind, grid_blind, True, True]))
     # Dropped only if SCREEN_MARGIN times costlier than QMC as it stands, and never under a
@@ -368,9 +368,10 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     z at -3.3); the seeded mixture alone, before the refit, had stopped low on a
     spread that missed its weights' tail (8 keys: mean z -1.6, one at -4.3).
     When QMC's pilot beats plain Monte Carlo on the same points by `clear_win_gain` per
-    evaluation (a smooth integrand) no grid is trained at all, and where its nets' first
-    quarter already shows `EARLY_MARGIN` times that, the rest of them are not evaluated
-    either. These shortcuts are taken outside `jit` only, where the figures are known.
+    evaluation (a smooth integrand), or the grid's outlook on them is hopeless
+    (`outlook_drops_grid`), no grid is trained at all; where the nets' first quarter shows
+    `EARLY_MARGIN` times that gain, the rest of them are not evaluated either. These
+    shortcuts are taken outside `jit` only, where the figures are known.
 
     The stream's budget depends only on how far the pilot went, QMC's early look,
     screening or training, not on whether a shortcut then skipped the grid or the mixture
@@ -395,9 +396,9 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     )
     if is_concrete(early_win) and bool(early_win):
         return alone, None, None, early_rest
-    qmc, alone = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_win, f=f,
-                            per_replica=per_replica, growth=growth, batched=batched)
-    if is_concrete(qmc.clear_win) and bool(qmc.clear_win):
+    qmc, alone, unpromising = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_win, f=f,
+                                         per_replica=per_replica, growth=growth, batched=batched)
+    if is_concrete(qmc.clear_win) and (bool(qmc.clear_win) or bool(unpromising)):
         return alone, None, None, screened_rest
     # Fine bins under a power-law tail, held either way (`VegasPlus.coarse`: may be traced).
     bins = fine_grid_bins if lo.size <= FINE_GRID_MAX_DIM else grid_bins

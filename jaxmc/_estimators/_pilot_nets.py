@@ -77,6 +77,16 @@ SEPARABLE_SHARE = 0.95
 SEPARABLE_BINS = 16
 SEPARABLE_FLOOR = 1e-3
 SEPARABLE_POINTS = 512  # per replica at most (the first of them, a net)
+OUTLOOK_FLOOR = 1e-3  # `grid_outlook`'s least density on a bin, relative to the mean
+# A grid whose outlook on QMC's values (`grid_outlook`, times the grid's cost per evaluation)
+# costs this many times QMC is not even screened (`outlook_drops_grid`). Measured at 1e5, 3
+# keys of every `auto` case whose values neither had a power-law tail nor looked like a
+# product (the screen's exemptions): the outlook cost 0.8-330x QMC where QMC then won (4-D
+# camel, annulus, oblique resonances, 3-D ball, 8-D half-space; the young grid 1.8-70x), and
+# read 0 (in-sample the grid fits the few points that hit) on the 10-D ball, where the grid
+# won. The outlook has no stratification, which the young grid has (the annulus: 0.64 against
+# its 0.14): hence twice the screen's margin.
+OUTLOOK_MARGIN = 4.0
 # ...and there the early look's clear win must be this many times its bar (5 lies between
 # 1.2-2.2, measured where QMC won early on Genz's 8- and 16-D continuous and 8-D corner
 # peak at 1e6 and erred 10-60x as much as QMC through the grid, and 12-7700 on his product
@@ -113,6 +123,9 @@ class QMCFigures(eqx.Module):
     plain: jax.Array  # plain MC's relative variance per evaluation, on the same points
     # f looks like a product of one-dimensional factors (`separable`; QMC's pilot only)
     separable: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(False))
+    # the relative variance per evaluation of a product density fitted in-sample to the
+    # nets' values (`grid_outlook`; the whole nets only, 0 where unread)
+    grid_outlook: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
 
 
 def _net_units(key, d, dtype, first, blocks, log2_block):
@@ -207,6 +220,47 @@ def grid_net_values(key, grid, f, batched, log2_size):
     return jax.vmap(replica)(u)
 
 
+def grid_outlook(bins, y) -> jax.Array:
+    r"""What importance sampling from a product of per-axis densities could do for $f$, read
+    from its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, in `bins` (`net_values`):
+    VEGAS's density from the means of $|f|^2$ over `SEPARABLE_BINS` bins of each axis,
+    $q_j(b) \propto \sqrt{\overline{|f|^2}_{jb}}$ (mean 1 over the bins, at least
+    `OUTLOOK_FLOOR`), and its relative variance per evaluation on the same points,
+    $$\frac{\overline{|f|^2/\prod_j q_j}}{\bar f^2} - 1 \;\ge 0$$
+    (summed over an array-valued $f$'s components). Fitted and read on the same points, it
+    flatters the density, most where the nets saw a peak through few points. 0 (no
+    outlook) in one dimension, where a grid is any piecewise-constant density."""
+    d = bins.shape[-1]
+    if d == 1:
+        return jnp.zeros((), y.dtype)
+    bins = jnp.reshape(bins, (-1, d)).astype(jnp.int32)
+    values = jnp.reshape(y, (bins.shape[0], -1))
+    square = jnp.sum(values**2, axis=1)
+    index = bins + SEPARABLE_BINS * jnp.arange(d, dtype=jnp.int32)
+    sums = jnp.zeros((d * SEPARABLE_BINS,), square.dtype).at[index].add(square[:, None])
+    counts = jnp.zeros((d * SEPARABLE_BINS,), square.dtype).at[index].add(1.0)
+    rms = jnp.reshape(jnp.sqrt(sums / jnp.maximum(counts, 1)), (d, SEPARABLE_BINS))
+    tiny = jnp.finfo(square.dtype).tiny
+    q = jnp.maximum(rms / jnp.maximum(jnp.mean(rms, axis=1, keepdims=True), tiny), OUTLOOK_FLOOR)
+    log_q = jnp.sum(jnp.log(jnp.reshape(q, (-1,)))[index], axis=1)
+    mean_square = jnp.sum(jnp.mean(values, axis=0) ** 2)
+    ratio = jnp.mean(square * jnp.exp(-log_q)) / jnp.maximum(mean_square, tiny)
+    return jnp.where(mean_square > 0, jnp.maximum(ratio - 1, 0.0), jnp.inf)
+
+
+def outlook_drops_grid(qmc: QMCFigures, grid_cost: float, seeded_best: float) -> jax.Array:
+    """Whether the grid is dropped before it is trained at all: its outlook (`grid_outlook`,
+    which flatters it) at `grid_cost` per evaluation relative to QMC costs `OUTLOOK_MARGIN`
+    times QMC, whose values neither miss the integrand, nor have a power-law tail, nor look
+    like a product (the exemptions of `auto`'s screen of the young grid), and whose cost is
+    below `seeded_best`, the least a density seeded from the grid has cost (a mixture of
+    Gaussians, which the outlook cannot foresee: on two Gaussians on the 4-D diagonal at 1e6
+    the outlook cost 0.8-5x QMC, then the mixture won, QMC at 4.8-30)."""
+    costlier = grid_cost * qmc.grid_outlook > OUTLOOK_MARGIN * qmc.variance
+    cheap = qmc.variance < seeded_best
+    return costlier & cheap & ~qmc.blind & ~qmc.heavy & ~qmc.separable
+
+
 def measure_nets(y, growth, bar):
     """QMC's figures from its replicas' values `y` `(QMC_REPLICAS, m, ...)`: `QMCFigures`,
     a clear win where plain MC's variance per evaluation on the same points is `bar`
@@ -258,8 +312,9 @@ def early_look_figures(bins, y, growth, bar) -> QMCFigures:
 def whole_nets_figures(bins, y, early_win, growth, bar) -> QMCFigures:
     """`measure_nets` of the whole nets `y`: their clear win only where $f$ does not look
     `separable` (a grid fits a product of one-dimensional factors exactly), or the early
-    look's (`early_win`, which stands)."""
+    look's (`early_win`, which stands); and their `grid_outlook`."""
     qmc = measure_nets(y, growth, bar)
     product = separable(bins, y)
     win = (qmc.clear_win & ~product) | early_win
-    return eqx.tree_at(lambda q: (q.clear_win, q.separable), qmc, (win, product))
+    return eqx.tree_at(lambda q: (q.clear_win, q.separable, q.grid_outlook), qmc,
+                       (win, product, grid_outlook(bins, y)))
