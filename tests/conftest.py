@@ -10,8 +10,8 @@ import tempfile
 # (level 0 of 3), the elemental emitters rather than the fusion emitters, and one LLVM
 # module per program. Compilation is most of the suite's time (measured on two cores: level
 # 2 -> 1, 916 s -> 790 s for the suite; 1 -> 0, 16:06 -> 14:39; the emitters and the one
-# module, 17:35 -> 10:01 (`.ci/run`), tests/test_integrate_auto.py and tests/test_args.py 230 s ->
-# 105 s, a traced `auto` 12.0 s -> 7.8 s). No check may depend on how the compiler
+# module, 17:35 -> 10:01 in `.ci/run`, tests/test_integrate_auto.py and tests/test_args.py
+# 230 s -> 105 s, a traced `auto` 12.0 s -> 7.8 s). No check may depend on how the compiler
 # optimises (a GPU fuses differently again); the benchmarks measure the defaults. Set
 # before JAX starts its backend, for this process, the xdist workers (they inherit the
 # variable) and the tests' subprocesses (`helpers.subprocess_xla_flags`); subprocesses
@@ -24,7 +24,8 @@ _EMITTERS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_parallel_codegen_
 def _accepted(flags: str) -> bool:
     probe = "import jax, jax.numpy as jnp; jax.jit(jnp.sin)(1.0).block_until_ready()"
     env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
-    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True).returncode == 0
+    run = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True)
+    return run.returncode == 0
 
 
 if "JAXMC_TEST_XLA_FLAGS" not in os.environ:

@@ -79,12 +79,13 @@ SEPARABLE_FLOOR = 1e-3
 SEPARABLE_POINTS = 512  # per replica at most (the first of them, a net)
 OUTLOOK_FLOOR = 1e-3  # `grid_outlook`'s least density on a bin, relative to the mean
 # A grid whose outlook on QMC's values (`grid_outlook`, times the grid's cost per evaluation)
-# costs this many times QMC is not even screened (`outlook_drops_grid`). Measured at 1e5, 3
-# keys of every `auto` case whose values neither had a power-law tail nor looked like a
+# costs this many times QMC is not even screened (`outlook_drops_grid`). Measured at 1e5 and
+# 1e6, 3 keys of every `auto` case whose values neither had a power-law tail nor looked like a
 # product (the screen's exemptions): the outlook cost 0.8-330x QMC where QMC then won (4-D
 # camel, annulus, oblique resonances, 3-D ball, 8-D half-space; the young grid 1.8-70x), and
 # read 0 (in-sample the grid fits the few points that hit) on the 10-D ball, where the grid
-# won. The outlook has no stratification, which the young grid has (the annulus: 0.64 against
+# won; on two Gaussians on the 4-D diagonal, 0.8-5x at 1e6, where the mixture seeded from the
+# grid won (hence `outlook_drops_grid`'s bound on QMC's cost). The outlook has no stratification, which the young grid has (the annulus: 0.64 against
 # its 0.14): hence twice the screen's margin.
 OUTLOOK_MARGIN = 4.0
 # ...and there the early look's clear win must be this many times its bar (5 lies between
