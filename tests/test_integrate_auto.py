@@ -124,6 +124,10 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     whole = measure_nets(y, 8.0, clear_win_gain(512))
     whole = eqx.tree_at(lambda q: q.grid_outlook, whole, grid_outlook(whole_bins, y))
     assert float(whole.grid_outlook) > 0
+    # (Scale-free, in float32 too, where the squares of values near 1e25 overflow.)
+    y32 = y.astype(jnp.float32)
+    np.testing.assert_allclose(grid_outlook(whole_bins, 1e25 * y32), grid_outlook(whole_bins, y32),
+                               rtol=1e-4)
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(reused)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10)
     # Under jit, where an early clear win cannot end the pilot, the verdict stands.

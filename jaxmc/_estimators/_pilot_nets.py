@@ -236,6 +236,8 @@ def grid_outlook(bins, y) -> jax.Array:
         return jnp.zeros((), y.dtype)
     bins = jnp.reshape(bins, (-1, d)).astype(jnp.int32)
     values = jnp.reshape(y, (bins.shape[0], -1))
+    scale = jnp.max(jnp.abs(values))  # (the ratio is scale-free; squares may overflow float32)
+    values = values / jnp.where(scale > 0, scale, 1)
     square = jnp.sum(values**2, axis=1)
     index = bins + SEPARABLE_BINS * jnp.arange(d, dtype=jnp.int32)
     sums = jnp.zeros((d * SEPARABLE_BINS,), square.dtype).at[index].add(square[:, None])
