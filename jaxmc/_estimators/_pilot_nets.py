@@ -85,8 +85,9 @@ OUTLOOK_FLOOR = 1e-3  # `grid_outlook`'s least density on a bin, relative to the
 # camel, annulus, oblique resonances, 3-D ball, 8-D half-space; the young grid 1.8-70x), and
 # read 0 (in-sample the grid fits the few points that hit) on the 10-D ball, where the grid
 # won; on two Gaussians on the 4-D diagonal, 0.8-5x at 1e6, where the mixture seeded from the
-# grid won (hence `outlook_drops_grid`'s bound on QMC's cost). The outlook has no stratification, which the young grid has (the annulus: 0.64 against
-# its 0.14): hence twice the screen's margin.
+# grid won (hence `outlook_drops_grid`'s bound on QMC's cost). The outlook has no
+# stratification, which the young grid has (the annulus: 0.64 against its 0.14): hence twice
+# the screen's margin.
 OUTLOOK_MARGIN = 4.0
 # ...and there the early look's clear win must be this many times its bar (5 lies between
 # 1.2-2.2, measured where QMC won early on Genz's 8- and 16-D continuous and 8-D corner
@@ -142,6 +143,20 @@ def _net_units(key, d, dtype, first, blocks, log2_block):
     return jax.vmap(replica)(jax.random.split(key, QMC_REPLICAS))
 
 
+def _axis_bins(bins) -> jax.Array:
+    """Each point's bin on each axis as one flat index into `d * SEPARABLE_BINS` (axis-major):
+    `(n, d)`, from `bins` `(..., d)` (`net_values`)."""
+    d = bins.shape[-1]
+    return jnp.reshape(bins, (-1, d)).astype(jnp.int32) + SEPARABLE_BINS * jnp.arange(
+        d, dtype=jnp.int32)
+
+
+def _axis_bin_sums(index, w) -> jax.Array:
+    """Sums of the per-point `w` `(n,)` over every axis's bins (`_axis_bins`): one scatter-add,
+    `(d * SEPARABLE_BINS,)`."""
+    return jnp.zeros((index.shape[1] * SEPARABLE_BINS,), w.dtype).at[index].add(w[:, None])
+
+
 def separable(bins, y) -> jax.Array:
     r"""Whether $f$ looks like a product of one-dimensional factors $\prod_j g_j(x_j)$, from
     its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, whose points lie in `bins`
@@ -163,16 +178,15 @@ def separable(bins, y) -> jax.Array:
     d, m = bins.shape[-1], min(y.shape[1], SEPARABLE_POINTS)  # a net's first points: a net
     if d == 1:
         return jnp.asarray(False)
-    bins = jnp.reshape(bins[:, :m], (-1, d)).astype(jnp.int32)
-    a = jnp.abs(jnp.reshape(y[:, :m], (bins.shape[0], -1)))
+    index = _axis_bins(bins[:, :m])
+    a = jnp.abs(jnp.reshape(y[:, :m], (index.shape[0], -1)))
     a = jnp.sqrt(jnp.sum(a**2, axis=1))  # in quadrature over an array-valued f's components
     z = jnp.log(a + SEPARABLE_FLOOR * jnp.max(a) + jnp.finfo(a.dtype).tiny)
     centre = jnp.mean(z)
     z = z - centre
     # The main effects' share of the variance (the first-order Sobol' indices of z, summed),
-    # from the bins' sums: one scatter-add, one flat index per axis and bin.
-    index = bins + SEPARABLE_BINS * jnp.arange(d, dtype=jnp.int32)
-    sums = jnp.zeros((d * SEPARABLE_BINS,), z.dtype).at[index].add(z[:, None])
+    # from the bins' sums.
+    sums = _axis_bin_sums(index, z)
     n = z.shape[0]
     variance = jnp.sum(z**2) / n
     # (A constant f, zero or not, has no factors to read: z's spread is then rounding.)
@@ -222,8 +236,8 @@ def grid_net_values(key, grid, f, batched, log2_size):
 
 
 def grid_outlook(bins, y) -> jax.Array:
-    r"""What importance sampling from a product of per-axis densities could do for $f$, read
-    from its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, in `bins` (`net_values`):
+    r"""What importance sampling from a product of per-axis densities could do for $f$, as
+    read on its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, in `bins` (`net_values`):
     VEGAS's density from the means of $|f|^2$ over `SEPARABLE_BINS` bins of each axis,
     $q_j(b) \propto \sqrt{\overline{|f|^2}_{jb}}$ (mean 1 over the bins, at least
     `OUTLOOK_FLOOR`), and its relative variance per evaluation on the same points,
@@ -234,14 +248,12 @@ def grid_outlook(bins, y) -> jax.Array:
     d = bins.shape[-1]
     if d == 1:
         return jnp.zeros((), y.dtype)
-    bins = jnp.reshape(bins, (-1, d)).astype(jnp.int32)
-    values = jnp.reshape(y, (bins.shape[0], -1))
+    index = _axis_bins(bins)
+    values = jnp.reshape(y, (index.shape[0], -1))
     scale = jnp.max(jnp.abs(values))  # (the ratio is scale-free; squares may overflow float32)
     values = values / jnp.where(scale > 0, scale, 1)
     square = jnp.sum(values**2, axis=1)
-    index = bins + SEPARABLE_BINS * jnp.arange(d, dtype=jnp.int32)
-    sums = jnp.zeros((d * SEPARABLE_BINS,), square.dtype).at[index].add(square[:, None])
-    counts = jnp.zeros((d * SEPARABLE_BINS,), square.dtype).at[index].add(1.0)
+    sums, counts = _axis_bin_sums(index, square), _axis_bin_sums(index, jnp.ones_like(square))
     rms = jnp.reshape(jnp.sqrt(sums / jnp.maximum(counts, 1)), (d, SEPARABLE_BINS))
     tiny = jnp.finfo(square.dtype).tiny
     q = jnp.maximum(rms / jnp.maximum(jnp.mean(rms, axis=1, keepdims=True), tiny), OUTLOOK_FLOOR)
