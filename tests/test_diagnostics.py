@@ -189,6 +189,32 @@ def test_float32_error_bar_is_floored_at_the_rounding_error():
     assert abs(float(est.mean) - (1000 + 2 / 3)) <= 5 * float(est.stderr)
 
 
+def test_a_variance_outside_the_dtypes_range_is_flagged():
+    # A 4-D Gaussian peak scaled by 1e-14 or 1e25, in float32: the variance of the mean
+    # (near 1e-46) flushed to 0, or the values' squares overflowed. Both were returned
+    # without a word, the first as 9.86971(0)e-18: an exact mean.
+    # (float32 throughout, as by default: the tests run with x64 on, whose float64 sums
+    # would hold the small variance.)
+    peak = lambda scale: lambda x: scale * jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.01)
+    with jax.enable_x64(False):
+        lo, hi = jnp.zeros(4), jnp.ones(4)
+        for scale in (1e-14, 1e25):
+            with pytest.warns(jaxmc.ReliabilityWarning, match="outside its dtype's range"):
+                est = jaxmc.integrate(jax.random.key(0), peak(scale), lo, hi, n=100_000)
+            assert est.mean.dtype == jnp.float32 and float(est.mean) != 0
+            tiny = float(jnp.finfo(jnp.float32).tiny)
+            assert not tiny <= float(est.variance) < np.inf and bool(stats.unreliable(est))
+        # Under jit, on the result.
+        run = jax.jit(lambda k: jaxmc.integrate(k, peak(1e-20), lo, hi, n=2**16, method="qmc"))
+        est = run(jax.random.key(1))
+        assert float(est.variance) < tiny and float(est.mean) != 0 and bool(stats.unreliable(est))
+    # In float64 the same integrands are in range: no warning (warnings are errors here).
+    for scale in (1e-14, 1e25):
+        est = jaxmc.integrate(jax.random.key(0), peak(scale), jnp.zeros(4), jnp.ones(4),
+                              n=100_000)
+        assert 0 < float(est.variance) < np.inf and not bool(stats.unreliable(est))
+
+
 @pytest.mark.parametrize("method", ["plain", "qmc"])
 def test_float32_prod_cos_is_within_5_reported_sigma(method):
     truth = np.sin(1.0) ** 4
