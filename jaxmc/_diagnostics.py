@@ -358,7 +358,7 @@ def variance_out_of_range(est: Any) -> jax.Array:
     $10^{-42}$, flushed to 0); scaled by $10^{25}$: errors of 14-77% and an infinite one."""
     # (Below the smallest normal number a variance is subnormal, with a few bits, or flushed
     # to 0, as the CPU may and GPUs do.)
-    tiny = jnp.finfo(jnp.result_type(est.variance)).tiny
+    tiny = jnp.finfo(jnp.result_type(est.variance, float)).tiny
     return (~jnp.isfinite(est.variance) & jnp.isfinite(est.mean)) | (
         (est.variance < tiny) & (est.mean != 0)
     )

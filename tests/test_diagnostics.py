@@ -208,6 +208,13 @@ def test_a_variance_outside_the_dtypes_range_is_flagged():
         run = jax.jit(lambda k: jaxmc.integrate(k, peak(1e-20), lo, hi, n=2**16, method="qmc"))
         est = run(jax.random.key(1))
         assert float(est.variance) < tiny and float(est.mean) != 0 and bool(stats.unreliable(est))
+        # With a tolerance: never met (a variance of 0 reads as met), and the stream stops
+        # (an overflowed sum of squares stays so) rather than run to max_n, 2^30.
+        for scale in (1e-20, 1e25):
+            with pytest.warns(jaxmc.ReliabilityWarning, match="outside its dtype's range"):
+                est = jaxmc.integrate(jax.random.key(2), peak(scale), lo, hi, rtol=1e-2,
+                                      method="qmc")
+            assert not bool(est.converged) and int(est.n) < 2**20
     # In float64 the same integrands are in range: no warning (warnings are errors here).
     for scale in (1e-14, 1e25):
         est = jaxmc.integrate(jax.random.key(0), peak(scale), jnp.zeros(4), jnp.ones(4),

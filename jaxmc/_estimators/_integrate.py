@@ -29,7 +29,7 @@ from .._checks import (
     check_key,
     is_concrete,
 )
-from .._diagnostics import warn_if_unreliable
+from .._diagnostics import variance_out_of_range, warn_if_unreliable
 from .._format import concrete
 from .._integrand import bind
 from .._stats import Estimate, ReliabilityWarning, estimate_fields
@@ -58,7 +58,8 @@ class IntegrationEstimate(Estimate):
       winner; `"auto"` itself only when the choice was traced under `jit`, where
       `pilot.choice` holds it).
     - `pilot`: for `"auto"`, the pilot's per-candidate figures (`Pilot`), else `None`.
-    - `converged`: with a tolerance, whether the standard error met it; else `None`.
+    - `converged`: with a tolerance, whether the standard error met it (never where the
+      variance left its dtype's range, `stats.unreliable`); else `None`.
     """
 
     method: str = eqx.field(static=True)
@@ -297,7 +298,8 @@ def integrate(
     converged = None
     if tolerant:
         tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
-        converged = jnp.all(est.stderr <= tol)
+        # (A variance out of its dtype's range meets nothing, however small it reads.)
+        converged = jnp.all(est.stderr <= tol) & ~jnp.any(variance_out_of_range(est))
     fields = estimate_fields(est)
     if spent:  # the pilot's evaluations count in n
         fields["n"] = est.n + spent
@@ -306,7 +308,9 @@ def integrate(
         est = _forward_mode_only(est)
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
-    if tolerant and is_concrete(converged) and not bool(converged):
+    # (Out of range, the reliability warning below says why, and what to do.)
+    if (tolerant and is_concrete(converged) and not bool(converged)
+            and not np.any(variance_out_of_range(est))):
         warnings.warn(unmet_tolerance(est, budget, run.rtol, run.atol, lo.dtype),
                       ReliabilityWarning, stacklevel=2)
     # (Values dropped on request, with nonfinite="drop", are not news.)

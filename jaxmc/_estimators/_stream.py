@@ -59,7 +59,7 @@ from jax.sharding import PartitionSpec
 
 from .. import _random
 from .._box import to_box
-from .._diagnostics import bounded_variance, stderr_floor
+from .._diagnostics import bounded_variance, stderr_floor, variance_out_of_range
 from .._fit._vegas import stratified_unit_points
 from .._integrand import evaluate, ratio
 from .._points._common import uint32_to_unit
@@ -256,7 +256,10 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
                 at_check = (t >= 1) & ((t & (t - 1)) == 0)
             est = stream_estimate(*carry, plan.replicas)
             met = est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean))
-            passed = jnp.all(met | at_rounding_floor(est.stderr, carry[0].tail))
+            # A variance outside its dtype's range stays there (an overflowed sum of squares
+            # does not come back): no budget meets the tolerance, as at the rounding floor.
+            stuck = at_rounding_floor(est.stderr, carry[0].tail) | variance_out_of_range(est)
+            passed = jnp.all(met | stuck)
             return tuple(jnp.where(at_check, new, old)
                          for new, old in zip((passed, checks[0]), checks))
 
