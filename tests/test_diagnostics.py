@@ -222,6 +222,22 @@ def test_a_variance_outside_the_dtypes_range_is_flagged():
         assert 0 < float(est.variance) < np.inf and not bool(stats.unreliable(est))
 
 
+def test_vegas_adapts_in_float32_at_any_magnitude():
+    # The same peak scaled by 1e25 or 1e-25: its squares over- or underflowed float32 and the
+    # grid refined on zeros where f was largest (errors 14-77% and 2-5%). In units of each
+    # round's largest value the grid adapts as unscaled (relative stderr ~2e-3: 5 sigma 1e-2),
+    # and the error bar, which float32 cannot hold, is flagged.
+    exact = (0.1 * np.sqrt(np.pi)) ** 4  # (erf(5) = 1 - 1.5e-12)
+    with jax.enable_x64(False):
+        for scale in (1e25, 1e-25):
+            f = lambda x, s=scale: s * jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.01)
+            for seed in range(3):
+                with pytest.warns(jaxmc.ReliabilityWarning, match="outside its dtype's range"):
+                    est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(4), jnp.ones(4),
+                                          n=100_000, method="adaptive")
+                assert abs(float(est.mean) / scale / exact - 1) < 1e-2, (scale, seed)
+
+
 @pytest.mark.parametrize("method", ["plain", "qmc"])
 def test_float32_prod_cos_is_within_5_reported_sigma(method):
     truth = np.sin(1.0) ** 4
