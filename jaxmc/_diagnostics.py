@@ -352,10 +352,11 @@ def variance_out_of_range(est: Any) -> jax.Array:
     float32 ($10^{154}$, $10^{-154}$ in float64) cannot be held, and squares of values
     $f/p$ beyond those bounds over- or underflow on the way to it. A variance of 0 then
     claims an exact mean, which no estimate can (its rounding floor, `rounding_floor` times
-    the mean, underflowed as well); an infinite one says nothing, and the squares that
-    adapt a density are lost with it. Measured in float32 on a 4-D Gaussian peak scaled by
-    $10^{-12}$: $9.87 \times 10^{-16}$ reported with a standard error of 0 (a variance near
-    $10^{-42}$, flushed to 0); scaled by $10^{25}$: errors of 14-77% and an infinite one."""
+    the mean, underflowed as well); an infinite one says nothing. Measured in float32 on a
+    4-D Gaussian peak scaled by $10^{-12}$: $9.87 \times 10^{-16}$ reported with a standard
+    error of 0 (a variance near $10^{-42}$, flushed to 0); scaled by $10^{25}$, an infinite
+    one (VEGAS rounds square values in units of their largest, `_vegas._unit`, so that
+    their grid still adapts)."""
     # (Below the smallest normal number a variance is subnormal, with a few bits, or flushed
     # to 0, as the CPU may and GPUs do.)
     tiny = jnp.finfo(jnp.result_type(est.variance, float)).tiny

@@ -48,8 +48,8 @@ def _unit(y: jax.Array) -> jax.Array:
     peak scaled by $10^{25}$ refined its grid on zeros (the overflowed squares) where $f$
     was largest and erred 14-77%, one scaled by $10^{-25}$ on underflowed ones, 2-5%; in
     units of their largest value, ~0.1%. Dividing by a power of two rounds nothing but
-    values it makes subnormal or lifts out of it; in range (1) results are bit for bit as
-    without it. (Lifting a far tail out of the subnormals changes what a grid grazing a
+    values it makes subnormal or lifts out of it; in range, where the unit is 1, results
+    are bit for bit as without it. (Lifting a far tail out of the subnormals changes what a grid grazing a
     missed peak learns: in float64 rounds that saw values of $10^{-141}$ and less of a
     narrow peak counted more of their tail, and `adapt`'s rounds then disagreed.)"""
     largest = jnp.max(jnp.abs(jax.lax.stop_gradient(y)))
