@@ -295,11 +295,12 @@ def integrate(
         est = run.adaptive(key, budget, probe_rtol)
     else:
         est = run.block_method(method, key, budget)
-    converged = None
+    converged = out_of_range = None
     if tolerant:
         tol = jnp.maximum(run.atol, run.rtol * jnp.abs(est.mean))
         # (A variance out of its dtype's range meets nothing, however small it reads.)
-        converged = jnp.all(est.stderr <= tol) & ~jnp.any(variance_out_of_range(est))
+        out_of_range = jnp.any(variance_out_of_range(est))
+        converged = jnp.all(est.stderr <= tol) & ~out_of_range
     fields = estimate_fields(est)
     if spent:  # the pilot's evaluations count in n
         fields["n"] = est.n + spent
@@ -309,8 +310,7 @@ def integrate(
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
     # (Out of range, the reliability warning below says why, and what to do.)
-    if (tolerant and is_concrete(converged) and not bool(converged)
-            and not np.any(variance_out_of_range(est))):
+    if tolerant and is_concrete(converged) and not bool(converged) and not bool(out_of_range):
         warnings.warn(unmet_tolerance(est, budget, run.rtol, run.atol, lo.dtype),
                       ReliabilityWarning, stacklevel=2)
     # (Values dropped on request, with nonfinite="drop", are not news.)
