@@ -316,6 +316,23 @@ def test_grid_edges_argument():
     np.testing.assert_allclose(g.pdf(jnp.array([0.05, 0.3, 0.9])), [1 / 0.3, 1 / 1.2, 1 / 1.5])
 
 
+def test_grid_subdivided_is_the_same_density_in_more_bins(key):
+    lo, hi = jnp.array([-1.0, 0.0]), jnp.array([2.0, 0.5])
+    logits = 2 * jax.random.normal(key, (2, 5))
+    g = eqx.tree_at(lambda q: q.logits, Grid(lo, hi, bins=5), logits)
+    fine = g.subdivided(3)
+    assert fine.bins == 15 and fine.logits.dtype == g.logits.dtype
+    # Every third edge is an edge of the original grid, and each bin is split evenly.
+    np.testing.assert_allclose(fine.edges[:, ::3], g.edges, rtol=1e-12, atol=1e-12)
+    widths = np.reshape(np.diff(np.asarray(fine.edges)), (2, 5, 3))
+    np.testing.assert_allclose(widths, widths[..., :1] * np.ones(3), rtol=1e-9)
+    x, _ = g.sample(jax.random.fold_in(key, 1), 1000)
+    np.testing.assert_allclose(fine.log_pdf(x), g.log_pdf(x), rtol=1e-12)
+    assert g.subdivided(1).bins == 5
+    with pytest.raises(ValueError, match="factor"):
+        g.subdivided(0)
+
+
 @pytest.mark.parametrize("bins", [1, 2, 3, 7, 64, 100, 256])
 def test_grid_bin_index_is_the_last_edge_at_or_below(bins):
     # The branchless binary search against `searchsorted` on the unit edges, for any number of

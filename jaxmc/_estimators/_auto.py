@@ -32,9 +32,9 @@ The candidates:
   grid on the 8-D i-flow Gaussian measured 80 against QMC's 18, then trained to 0.35); otherwise
   it trains in full and the choice is made on the trained grid. Under such a tail, in up to
   `FINE_GRID_MAX_DIM` dimensions, its bins are `fine_grid_bins` (as vegas's many increments,
-  they resolve a singularity: 2.5x and 9x lower variance at 1e5). If the grid wins it goes on
-  as `method="adaptive"` does after training (refining rounds, then with a tolerance a frozen
-  stream); if QMC wins, the training was the price of knowing.
+  they resolve a singularity: 2.5x and 9x lower variance at 1e5). If the grid wins it refines
+  as `method="adaptive"` does after training (under the tail on larger rounds and 4x the bins,
+  `tail_refining`), with a tolerance then streams frozen; else training was the price of knowing.
 - `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$
   with values $f/q$ (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's
   pilot's, measured and projected as its are): importance sampling from the

@@ -16,7 +16,9 @@ from ._adaptive import (
     frozen_vegas_plus,
     grid_bins,
     refine,
+    refine_finer,
     refining_rounds,
+    tail_refining,
     train_vegas_plus,
     training_rounds,
     uniform_grid,
@@ -105,9 +107,27 @@ class Runner:
         est = self.trained_grid(key, budget - done, state, block, done)
         return dataclasses.replace(est, n=est.n + done)
 
-    def trained_grid(self, key, budget, state, block, done=0):
+    def trained_grid(self, key, budget, state, block, done=0, tail=False):
         """Refining rounds from a trained VEGAS+ `state`; with a tolerance they did not
-        meet, a frozen stream after them (`_adaptive`)."""
+        meet, a frozen stream after them (`_adaptive`). Under a power-law tail (`tail`, may
+        be traced) and a fixed budget, larger rounds on a finer grid (`tail_refining`)."""
+        tail_rounds, size = (0, 0) if self.tolerant else tail_refining(budget, block)
+        if not tail_rounds or (is_concrete(tail) and not bool(tail)):
+            return self._refined_grid(key, budget, state, block, done)
+
+        def finer():
+            with progress_bar(self.progress, done + tail_rounds * size, done):
+                return refine_finer(key, fixed_for_derivatives(state),
+                                    f=self.f, batched=self.batched, rounds=tail_rounds,
+                                    size=size, progress=self.progress)
+
+        if is_concrete(tail):
+            return finer()
+        return jax.lax.cond(tail, finer,
+                            lambda: self._refined_grid(key, budget, state, block, done))
+
+    def _refined_grid(self, key, budget, state, block, done):
+        """`trained_grid` on rounds of the training's size."""
         refine_key, key = jax.random.split(key)
         rounds = refining_rounds(budget, block, self.tolerant)
         state = fixed_for_derivatives(state)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -67,6 +69,13 @@ class Grid(AbstractUnitMap):
     @property
     def bins(self) -> int:
         return jnp.shape(self.logits)[1]
+
+    def subdivided(self, factor: int) -> Grid:
+        """The same density held in `factor` times as many bins, each bin split evenly
+        (so that refining can go on at a finer resolution from where it stands)."""
+        factor = check_count(factor, "factor", minimum=1)
+        logits = jnp.repeat(self.logits, factor, axis=-1) - math.log(factor)
+        return eqx.tree_at(lambda g: g.logits, self, logits)
 
     def _unit_edges(self) -> tuple[jax.Array, jax.Array]:
         """Widths `(d, N)` and edges `(d, N+1)` in unit coordinates."""
