@@ -68,9 +68,8 @@ The candidates:
   of its two modes, estimates half the truth at 5-750 standard errors; with the
   search, 10 of 10 within 2). Before the search and those points are paid for, the
   seeded mixture is judged on the grid's own points (`mixture_outlook`, no evaluation of
-  $f$), and not measured where it would cost `MIXTURE_HOPELESS` times QMC or the grid
-  (Gaussians do not follow a singularity: at 1e5, $x^{-1/3}$ in 6-D spent ~4 ms of its
-  ~25 ms, and 2672 evaluations, on a mixture that measured 40-100x the grid's cost).
+  $f$), and not measured where it would cost `MIXTURE_HOPELESS` times QMC or the grid; not
+  even seeded where the grid follows a singularity (`follows_a_singularity`): Gaussians do not.
   A grid is a product of axis densities: a peak along a diagonal, or several
   peaks, make it put mass on every combination of the axes' bins, which a
   mixture of Gaussians does not (measured, variance per evaluation against the
@@ -128,7 +127,7 @@ from .._format import concrete, number
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, uniform_grid
 from ._mode_search import search_evaluations
 from ._pilot_grid import grid_qmc_pilot, grid_rounds, round_figures, run_rounds
-from ._pilot_mixture import mixture_outlook, mixture_pilot
+from ._pilot_mixture import follows_a_singularity, mixture_outlook, mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
     MAX_NET_GROWTH,
@@ -302,14 +301,15 @@ def _screen(qmc: QMCFigures, parts, samples, active, *, rounds, round_size):
 def _after_training(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, screened,
                     decided):
     """QMC, the trained grid and QMC through it (the screened choice where the grid was
-    dropped), and whether QMC or the grid already costs less than any mixture measured
-    would (`MIXTURE_FLOOR`). Not QMC through the grid: on a grid that holds one of two
-    separated peaks $f/q$ is smooth and its figure low, and only the mixture's pilot
-    searches for the peak it misses (i-flow's 16-D camel at 1e5: one key of 10 took it
-    and returned half the truth, before this)."""
+    dropped), and whether no mixture need be fitted: QMC or the grid costs less than any
+    measured would (`MIXTURE_FLOOR`; not QMC through the grid: on a grid holding one of two
+    separated peaks $f/q$ is smooth and its figure low, and only the mixture's pilot seeks
+    the missed peak: i-flow's 16-D camel at 1e5, one key of 10 took it and returned half the
+    truth, before this), or the grid follows a singularity (`follows_a_singularity`)."""
     three = _choose(qmc, jnp.stack([qmc.variance, v_grid, grid_qmc.variance, jnp.inf]),
                     jnp.stack([qmc.blind, grid_blind, grid_blind | grid_qmc.blind, True]))
-    beaten = ~decided & (jnp.min(three[1][:2]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
+    beaten = ~decided & ((jnp.min(three[1][:2]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
+                         | follows_a_singularity(qmc, grid_qmc, three[0][1]))
     three = tuple(jnp.where(decided, a, b) for a, b in zip(_first(screened, 3), _first(three, 3)))
     return three, beaten
 
@@ -358,12 +358,12 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     as it stands, is `SCREEN_MARGIN` times costlier than QMC.
     QMC through the trained grid is measured on nets as large as QMC's pilot's.
     The mixture is seeded from the trained grid and measured on at most
-    `MIXTURE_PILOT_POINTS` points, unless another candidate already costs less than
-    a mixture at `MIXTURE_FLOOR` would, or the mixture's figure on the grid's points
-    costs `MIXTURE_HOPELESS` times QMC's or the grid's, or in one dimension (a grid there
-    is any piecewise-constant density). With a tolerance too: on the 5-D posterior at
-    `rtol=1e-3` (32 keys) the refitted mixture with its wide part met it in 0.82M
-    evaluations (median; at most 3.4M, vegas 1.5M) with no z below -2.4
+    `MIXTURE_PILOT_POINTS` points, unless another candidate already costs less than a
+    mixture at `MIXTURE_FLOOR` would, or the grid follows a singularity, or the mixture's
+    figure on the grid's points costs `MIXTURE_HOPELESS` times QMC's or the grid's, or in
+    one dimension (a grid there is any piecewise-constant density). With a tolerance too:
+    on the 5-D posterior at `rtol=1e-3` (32 keys) the refitted mixture with its wide part
+    met it in 0.82M evaluations (median; at most 3.4M, vegas 1.5M) with no z below -2.4
     (mean -0.8), where the grid's stream took 3.3M (at most 14M over 40 keys, one
     z at -3.3); the seeded mixture alone, before the refit, had stopped low on a
     spread that missed its weights' tail (8 keys: mean z -1.6, one at -4.3).
@@ -426,8 +426,8 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         growth=min(final_net(trained_rest) / per_replica, MAX_NET_GROWTH), batched=batched,
     )
     trained_n = (qmc_n, rounds * round_size, grid_qmc_n)
-    # No mixture measured so far has gone below MIXTURE_FLOOR: when another candidate
-    # already costs less than such a mixture would, it is not fitted (outside jit only).
+    # No mixture measured so far has gone below MIXTURE_FLOOR: when another candidate already
+    # costs less, or the grid follows a singularity, none is fitted (outside jit only).
     (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, grid_qmc,
                                                        screened, decided)
     without_mixture = Pilot(CANDIDATES[:3], variance, cost, choice, trained_n)
