@@ -128,8 +128,8 @@ def tail_refining(budget: int, block: int) -> tuple[int, int]:
     6-D 1.41e-4 -> 9.0e-5 at $10^6$ (vegas 8.0e-5) and 6.3e-4 -> 5.4e-4 at $10^5$; x^-1/2
     in 2-D 1.29e-4 -> 7.4e-5 and 6.6e-4 -> 5.9e-4; (sum x)^-3/2 in 4-D 6.9e-5 -> 4.8e-5 and
     4.8e-4 -> 3.7e-4; vegas's 4-D Gaussian 4.0e-4 -> 2.7e-4 and a correlated 5-D posterior
-    2.1e-3 -> 1.5e-3 at $10^6$. Within `auto` at $10^6$ (100 keys from 300, where the grid
-    won): (sum x)^-3/2 8.7e-5 -> 5.3e-5, x^-1/3 1.40e-4 -> 1.14e-4, no slower. Larger rounds
+    2.1e-3 -> 1.5e-3 at $10^6$. Within `auto` at $10^6$ (100 keys from 300, those QMC did
+    not win): (sum x)^-3/2 8.7e-5 -> 5.3e-5, x^-1/3 1.40e-4 -> 1.14e-4, no slower. Larger rounds
     alone (256 bins, 2^16 points) did worse on x^-1/3, and 4x the bins on the 10-D ball (no
     tail) 1.7x worse: there the grid refines as it trained (`method="adaptive"`, which knows
     of no tail, does too).
