@@ -101,6 +101,13 @@ def fine_grid_bins(block: int) -> int:
     return max(grid_bins(block), min(256, block // 8))
 
 
+def is_fine(state, d: int):
+    """Whether `auto`'s trained grid (a VEGAS+ `state`) is fine: trained at `fine_grid_bins`
+    (in up to `FINE_GRID_MAX_DIM` dimensions) and refined at all of them, not `coarse`
+    (QMC's values had a power-law tail). May be traced."""
+    return ~state.coarse if d <= FINE_GRID_MAX_DIM else False
+
+
 @functools.partial(jax.jit, static_argnames="bins")
 def uniform_grid(lo, hi, *, bins):
     """`Grid(lo, hi, bins)`, uniform, in one dispatch (eagerly, its checks and casts cost

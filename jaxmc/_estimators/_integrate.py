@@ -33,7 +33,7 @@ from .._diagnostics import variance_out_of_range, warn_if_unreliable
 from .._format import concrete
 from .._integrand import bind
 from .._stats import Estimate, ReliabilityWarning, estimate_fields
-from ._adaptive import FINE_GRID_MAX_DIM, adaptive_block, training_rounds
+from ._adaptive import adaptive_block, is_fine, training_rounds
 from ._auto import Pilot, run_pilot, split_keys
 from ._plan import PROBE_BUDGET, PROBE_REACH, QMC_REPLICAS
 from ._runner import Runner
@@ -279,9 +279,9 @@ def integrate(
         branches = (
             lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
-            # Under a power-law tail the grid is fine, and refines finer (`tail_refining`).
-            lambda: run.trained_grid(key, rest, state, block, spent, tail=~state.coarse
-                                     if lo.size <= FINE_GRID_MAX_DIM else False),
+            # A fine grid (a power-law tail) refines finer (`tail_refining`).
+            lambda: run.trained_grid(key, rest, state, block, spent,
+                                     tail=is_fine(state, lo.size)),
             # Scrambled Sobol' nets through the trained grid's map.
             lambda: run.qmc(key, rest, spent, grid=state.grid),
             # Importance sampling from the mixture the pilot seeded from the grid (refitted
