@@ -32,6 +32,14 @@ SCATTER_TRUST = 30.0
 # plain MC through it: as `_pilot_mixture.MIXTURE_MAX_VARIANCE`, an effective sample size
 # above n/10.
 GRID_QMC_MAX_VARIANCE = 9.0
+# ...and $f/q$ is not taken for a power-law tail where QMC's nets through the grid beat plain
+# MC on their points by this much (the whole nets' spread, before any projection): a tail
+# that carried the error would not let them. Bounded peaks read a Pareto k-hat near 0.2
+# through the grid, and over it by chance: Genz's 8-D corner peak at 1e6, one key of 10 at
+# 0.203, which then streamed from the grid alone at 100x the error (1.1e-4 against ~1e-6);
+# there the gain was 780-7000 (10 keys). The singularities' stayed below 50 at 1e5 (84 runs:
+# x^-1/3 in 6-D, (sum x)^-3/2 in 4-D, x^-1/2 in 2-D) and 214 at 1e6 (60 runs).
+GRID_QMC_TAIL_GAIN = 500.0
 
 
 def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
@@ -91,14 +99,15 @@ def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     times larger): `QMCFigures` (its `clear_win` unused), the variance `inf` where the grid
     fits loosely (plain MC's through it above `GRID_QMC_MAX_VARIANCE`: the grid goes on
     adapting, QMC through it would not) or $f/q$ has a power-law tail (the replicas' spread
-    understates, the refining grid gives the tighter honest error bar; see `_auto`)."""
+    understates, the refining grid gives the tighter honest error bar; see `_auto`), unless
+    the nets beat plain MC by `GRID_QMC_TAIL_GAIN`."""
     y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
     return _grid_qmc_figures(y, growth=growth)
 
 
 @partial(jax.jit, static_argnames="growth")
 def _grid_qmc_figures(y, *, growth):
-    figures = measure_nets(y, growth, jnp.inf)
+    figures = measure_nets(y, growth, jnp.inf, GRID_QMC_TAIL_GAIN)
     loose = figures.plain > GRID_QMC_MAX_VARIANCE
     variance = jnp.where(loose | figures.heavy, jnp.inf, figures.variance)
     return eqx.tree_at(lambda q: q.variance, figures, variance)

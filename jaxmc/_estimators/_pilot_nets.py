@@ -276,10 +276,11 @@ def outlook_drops_grid(qmc: QMCFigures, grid_cost: float, seeded_best: float) ->
     return costlier & cheap & ~qmc.blind & ~qmc.heavy & ~qmc.separable
 
 
-def measure_nets(y, growth, bar):
+def measure_nets(y, growth, bar, tail_gain=math.inf):
     """QMC's figures from its replicas' values `y` `(QMC_REPLICAS, m, ...)`: `QMCFigures`,
     a clear win where plain MC's variance per evaluation on the same points is `bar`
-    times QMC's."""
+    times QMC's; no power-law tail where it is `tail_gain` times QMC's (see
+    `_pilot_grid.GRID_QMC_TAIL_GAIN`)."""
     per_replica = y.shape[1]
 
     def relative_variance_per_evaluation(values):
@@ -309,7 +310,7 @@ def measure_nets(y, growth, bar):
     # An unbounded integrand (a power-law tail of the values, k-hat > 0.2) keeps QMC's
     # variance near plain MC's and makes the replicas' spread skewed and small (the bound of
     # `bounded_variance`): QMC is credited with plain MC's variance there, and no clear win.
-    heavy = jnp.any(power_law_tail(tail_of(flat)))
+    heavy = jnp.any(power_law_tail(tail_of(flat))) & ~(plain >= tail_gain * full)
     projected = jnp.where(heavy, jnp.maximum(projected, plain), projected)
     blind = jnp.all(mean == 0) | ~measured
     clear_win = (plain >= bar * full) & measured & ~heavy
