@@ -23,8 +23,8 @@ The candidates:
   comes from pairs of points in hypercubes, which a peak the grid has not yet
   resolved inflates (100-1000x what the grid then realised on a 16-D camel, a
   5-D posterior and a corner singularity). It is not trained at all where a product
-  density fitted to QMC's values would cost `OUTLOOK_MARGIN` times QMC
-  (`outlook_drops_grid`). A young grid's variance says little of the trained one's
+  density fitted to QMC's values would cost `OUTLOOK_MARGIN` times QMC, or more than QMC
+  where it gains little over plain MC (`outlook_drops_grid`). A young grid's variance says little of the trained one's
   (`run_pilot`), so the grid is dropped after `SCREEN_ROUNDS` rounds only when, as it
   stands, it is `SCREEN_MARGIN` times costlier than a QMC pilot that measured the
   integrand, and never when QMC's values have a power-law tail (a young grid's rounds are then

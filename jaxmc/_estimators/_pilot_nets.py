@@ -94,6 +94,16 @@ OUTLOOK_MARGIN = 4.0
 # peak at 1e6 and erred 10-60x as much as QMC through the grid, and 12-7700 on his product
 # peaks, Gaussians and 2-D corner peak, where QMC does as well; 10 keys at 1e5 and 1e6).
 SEPARABLE_EARLY_MARGIN = 5.0
+# A grid whose outlook gains less than this over plain MC on QMC's points is not screened
+# either where it costs more than QMC at all (`outlook_drops_grid`): flattering as the
+# outlook is, f concentrates on no axis, and no mixture seeded from the grid has won there.
+# Measured at 1e5 and 1e6 (4 keys of every `auto` case): the outlook's gain 1.3-3.1 on the
+# oblique resonances, the annulus, the 3-D ball and i-flow's 4-D camel, where QMC won on
+# every key (at 1e5 the young grid was screened on 12 of their 20 runs, at 1.2-68x QMC's
+# cost; at 1e6 the 4-D resonance trained it in full on 4 keys of 10); 11-16 on two Gaussians
+# on the 4-D diagonal, where the mixture won; 13-17 on the 8-D half-space (QMC won; on 1 key
+# of 24, QMC through the trained grid).
+OUTLOOK_FLAT_GAIN = 4.0
 
 
 def pilot_qmc_points(budget: int) -> int:
@@ -270,10 +280,14 @@ def outlook_drops_grid(qmc: QMCFigures, grid_cost: float, seeded_best: float) ->
     like a product (the exemptions of `auto`'s screen of the young grid), and whose cost is
     below `seeded_best`, the least a density seeded from the grid has cost (a mixture of
     Gaussians, which the outlook cannot foresee: on two Gaussians on the 4-D diagonal at 1e6
-    the outlook cost 0.8-5x QMC, then the mixture won, QMC at 4.8-30)."""
-    costlier = grid_cost * qmc.grid_outlook > OUTLOOK_MARGIN * qmc.variance
+    the outlook cost 0.8-5x QMC, then the mixture won, QMC at 4.8-30); or costs more than
+    QMC where it gains less than `OUTLOOK_FLAT_GAIN` over plain MC."""
+    outlook = grid_cost * qmc.grid_outlook
+    costlier = outlook > OUTLOOK_MARGIN * qmc.variance
     cheap = qmc.variance < seeded_best
-    return costlier & cheap & ~qmc.blind & ~qmc.heavy & ~qmc.separable
+    flat = OUTLOOK_FLAT_GAIN * qmc.grid_outlook >= qmc.plain
+    dropped = (costlier & cheap) | (flat & (outlook > qmc.variance))
+    return dropped & ~qmc.blind & ~qmc.heavy & ~qmc.separable
 
 
 def measure_nets(y, growth, bar, tail_gain=math.inf):
