@@ -1,5 +1,6 @@
 """`integrate(method="auto")`'s pilot and choice, and the rate-keeping randomised QMC."""
 
+import itertools
 import math
 import re
 from functools import partial
@@ -9,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.integrate import quad
 from scipy.special import erf
 
 import jaxmc
@@ -199,7 +201,6 @@ def test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc():
     # plain MC on them (2.9x and 1.5x), and costs more than QMC. No grid is screened (on
     # these keys it was, at 3-7x QMC's cost, and on key 2 of the resonance it trained in full
     # before QMC won), and the stream keeps the screen's budget.
-    from benchmarks import problems
     from jaxmc._estimators._pilot_nets import OUTLOOK_FLAT_GAIN
 
     alpha, d = 0.2, 4
@@ -207,9 +208,20 @@ def test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc():
     camel = lambda x: 0.5 * pre * sum(jnp.exp(-jnp.sum((x - c) ** 2) / alpha**2)
                                       for c in (1 / 3, 2 / 3))
     camel_exact = (0.5 * (erf(1 / (3 * alpha)) + erf(2 / (3 * alpha)))) ** d
-    resonance = problems.oblique_resonance(d)  # the `auto` benchmark's, in closed form
-    for f, exact, seeds in [(camel, camel_exact, (2, 3, 5)),
-                            (resonance.jax_f, resonance.exact, (2, 3))]:
+    w = np.linspace(1.0, 2.0, d)
+    w = w / np.linalg.norm(w)  # a unit direction off the axes
+    m, width = 0.4 * float(np.sum(w)), 0.01
+    lorentzian = lambda s: (width / np.pi) / ((s - m) ** 2 + width**2)
+
+    def density(s):  # of s = w . x, x uniform on the cube (inclusion-exclusion)
+        terms = ((-1) ** len(c) * max(s - sum(c), 0.0) ** (d - 1)
+                 for k in range(d + 1) for c in itertools.combinations(w, k))
+        return sum(terms) / (math.factorial(d - 1) * np.prod(w))
+
+    resonance_exact = quad(lambda s: lorentzian(s) * density(s), 0, float(np.sum(w)),
+                           points=[m], limit=200)[0]
+    resonance = lambda x: lorentzian(x @ jnp.asarray(w))
+    for f, exact, seeds in [(camel, camel_exact, (2, 3, 5)), (resonance, resonance_exact, (2, 3))]:
         for seed in seeds:
             est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
             assert est.method == "qmc" and est.pilot.candidates == ("qmc",), (seed, est.pilot)
