@@ -94,16 +94,32 @@ def test_auto_decides_a_clear_win_on_the_first_quarter_of_its_nets():
         low, high = est.interval(1 - 1e-4)
         assert low <= np.sin(1.0) ** 4 <= high, (seed, est)
     # A discontinuity is no clear win on 128 points (QMC gains 9-18x there, below the early
-    # bar of 23.6) but is on the whole nets of 512 (40-60x, above 15).
+    # bar of 23.6) but is on the whole nets of 512 (40-60x, above 15). (`auto` takes QMC
+    # there on the first quarter anyway, where the grid's outlook on it is hopeless.)
+    from jaxmc._estimators._auto import split_keys
+    from jaxmc._estimators._pilot_nets import (
+        EARLY_MARGIN,
+        clear_win_gain,
+        early_look_figures,
+        measure_nets,
+        net_values,
+    )
+
     d, u = 8, (0.6, 0.7)
     a = np.full(d, 4.3 / d)
     f = lambda x: jnp.where((x[0] <= u[0]) & (x[1] <= u[1]), jnp.exp(x @ a), 0.0)
     exact = np.prod(np.expm1(a * np.concatenate([u, np.ones(d - 2)])) / a)
+    lo, hi = jnp.zeros(d), jnp.ones(d)
     for seed in (0, 1, 2):
-        est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
-        assert est.pilot.evaluations == (4096,) and est.method == "qmc", seed
+        pilot_key = split_keys(jax.random.key(seed))[1][0]  # the QMC pilot's nets, whole
+        y, bins = net_values(pilot_key, lo, hi, f, False, 0, 4, 7, True)
+        quarter = early_look_figures(bins[:, :128], y[:, :128], 8.0,
+                                     EARLY_MARGIN * clear_win_gain(128))
+        assert not bool(quarter.clear_win), seed
+        assert bool(measure_nets(y, 8.0, clear_win_gain(512)).clear_win), seed
+        est = jaxmc.integrate(jax.random.key(seed), f, lo, hi, n=100_000)
         low, high = est.interval(1 - 1e-4)
-        assert low <= exact <= high, (seed, est)
+        assert est.method == "qmc" and low <= exact <= high, (seed, est)
 
 
 def test_qmc_pilot_reuses_its_early_look_exactly():
@@ -167,13 +183,11 @@ def test_auto_trains_a_grid_that_is_still_learning():
 
 def test_auto_drops_a_grid_whose_outlook_is_hopeless_before_screening_it():
     # A ball's indicator in 3-D and i-flow's 4-D camel: QMC's pilot beats plain MC 8-10x (no
-    # clear win), at a cost below any mixture's seen, and a product density fitted to its
-    # values costs over 4x QMC (on the ball the young grid measured 20-160x after 3 rounds,
-    # on the camel 6-7x, and QMC won). No grid is screened: the stream keeps the screen's
-    # budget (5 nets of 2^14 either way), which is left unspent. (On keys 2 and 4 of the
-    # ball, 0, 2, 3 and 5 of the camel, QMC costs more: the outlook gains little over plain
-    # MC there, see `test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc`.)
-    # Under jit, where every stage runs, the outlook decides as well.
+    # clear win), and a product density fitted to its values costs over 4x QMC (on the ball
+    # the young grid measured 20-160x after 3 rounds, on the camel 6-7x, and QMC won). No
+    # grid is screened, and where the nets' first quarter shows it (the ball), the rest of
+    # the pilot's nets go to the stream: 3 nets of 2^15, not 5 of 2^14. Under jit, where
+    # every stage runs, the outlook decides as well.
     from jaxmc._estimators._pilot_nets import OUTLOOK_MARGIN
 
     r, alpha = 0.45, 0.2
@@ -182,12 +196,15 @@ def test_auto_drops_a_grid_whose_outlook_is_hopeless_before_screening_it():
     camel = lambda x: 0.5 * pre * sum(jnp.exp(-jnp.sum((x - c) ** 2) / alpha**2)
                                       for c in (1 / 3, 2 / 3))
     camel_exact = (0.5 * (erf(1 / (3 * alpha)) + erf(2 / (3 * alpha)))) ** 4
-    for f, d, exact, seeds in [(ball, 3, 4 / 3 * np.pi * r**3, (0, 1, 3)),
-                               (camel, 4, camel_exact, (1, 4))]:
+    early, whole = ((1024,), 1024 + 3 * 2**15), ((4096,), 4096 + 5 * 2**14)
+    for f, d, exact, seeds, (evaluations, n) in [
+        (ball, 3, 4 / 3 * np.pi * r**3, (0, 1, 3), early),
+        (camel, 4, camel_exact, (1, 6), whole),
+    ]:
         for seed in seeds:
             est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
             assert est.method == "qmc" and est.pilot.candidates == ("qmc",), (seed, est.pilot)
-            assert est.pilot.evaluations == (4096,) and int(est.n) == 4096 + 5 * 2**14, seed
+            assert est.pilot.evaluations == evaluations and int(est.n) == n, (seed, est.pilot)
             assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
     traced = jax.jit(lambda k: jaxmc.integrate(k, ball, jnp.zeros(3), jnp.ones(3), n=100_000))
     est = traced(jax.random.key(0))
@@ -200,7 +217,8 @@ def test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc():
     # the axes: a product density fitted to QMC's values gains under OUTLOOK_FLAT_GAIN over
     # plain MC on them (2.9x and 1.5x), and costs more than QMC. No grid is screened (on
     # these keys it was, at 3-7x QMC's cost, and on key 2 of the resonance it trained in full
-    # before QMC won), and the stream keeps the screen's budget.
+    # before QMC won): on the camel the nets' first quarter shows it, on the resonance (whose
+    # values there read as a power-law tail) the whole nets.
     from jaxmc._estimators._pilot_nets import OUTLOOK_FLAT_GAIN
 
     alpha, d = 0.2, 4
@@ -221,11 +239,14 @@ def test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc():
     resonance_exact = quad(lambda s: lorentzian(s) * density(s), 0, float(np.sum(w)),
                            points=[m], limit=200)[0]
     resonance = lambda x: lorentzian(x @ jnp.asarray(w))
-    for f, exact, seeds in [(camel, camel_exact, (2, 3, 5)), (resonance, resonance_exact, (2, 3))]:
+    for f, exact, seeds, (evaluations, n) in [
+        (camel, camel_exact, (2, 3, 5), ((1024,), 1024 + 3 * 2**15)),
+        (resonance, resonance_exact, (2, 3), ((4096,), 4096 + 5 * 2**14)),
+    ]:
         for seed in seeds:
             est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
             assert est.method == "qmc" and est.pilot.candidates == ("qmc",), (seed, est.pilot)
-            assert int(est.n) == 4096 + 5 * 2**14, seed
+            assert est.pilot.evaluations == evaluations and int(est.n) == n, (seed, est.pilot)
             assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
     assert OUTLOOK_FLAT_GAIN == 4
 

@@ -8,13 +8,13 @@ evaluation, so the winner minimises $v \cdot c$.
 
 The candidates:
 
-- `"qmc"`: `QMC_REPLICAS` scrambled Sobol' nets (`_pilot_nets`): their spread's
-  variance per evaluation, projected to the stream's net size at the rate the
-  nets show; a clear win over plain Monte Carlo on the same points (a smooth
-  integrand) skips the other candidates, decided on the nets' first quarter
-  where it is already plain, else on the whole nets; where $f$ is a product of
-  one-dimensional factors (`separable`), which the grid fits exactly, only on the first
-  quarter and by a wider margin, and the grid's screen does not drop it.
+- `"qmc"`: `QMC_REPLICAS` scrambled Sobol' nets (`_pilot_nets`): their spread's variance
+  per evaluation, projected to the stream's net size at the rate the nets show; a clear win
+  over plain Monte Carlo on the same points (a smooth integrand) skips the other candidates
+  (as does the grid's outlook, below), decided on the nets' first quarter where it is
+  already plain, else on the whole nets; where $f$ is a product of one-dimensional factors
+  (`separable`), which the grid fits exactly, only on the first quarter and by a wider
+  margin, and the grid's screen does not drop it.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
   $\sigma^2_m$ of its last round (`_pilot_grid.grid_rounds`), hedged (a geometric
@@ -225,8 +225,8 @@ def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
 
 def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured: `(their
-    values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar, QMC's lone
-    `Pilot`)`."""
+    values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar or the grid's
+    outlook on them drops it (`outlook_drops_grid`), QMC's lone `Pilot`)`."""
     quarter = per_replica // 4
     y, bins = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1, True)
     return (y, bins) + _early_verdict(bins, y, growth=growth,
@@ -238,7 +238,8 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
 @partial(jax.jit, static_argnames=("growth", "bar"))
 def _early_verdict(bins, y, *, growth, bar):
     qmc = early_look_figures(bins, y, growth, bar)
-    return qmc.clear_win, _alone(qmc, y.shape[1] * QMC_REPLICAS)
+    stop = qmc.clear_win | outlook_drops_grid(qmc, *_OUTLOOK_COSTS)
+    return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS)
 
 
 def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched):
@@ -367,11 +368,10 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     (mean -0.8), where the grid's stream took 3.3M (at most 14M over 40 keys, one
     z at -3.3); the seeded mixture alone, before the refit, had stopped low on a
     spread that missed its weights' tail (8 keys: mean z -1.6, one at -4.3).
-    When QMC's pilot beats plain Monte Carlo on the same points by `clear_win_gain` per
-    evaluation (a smooth integrand), or the grid's outlook on them is hopeless
-    (`outlook_drops_grid`), no grid is trained at all; where the nets' first quarter shows
-    `EARLY_MARGIN` times that gain, the rest of them are not evaluated either. These
-    shortcuts are taken outside `jit` only, where the figures are known.
+    When QMC's pilot beats plain MC on the same points by `clear_win_gain` per evaluation (a
+    smooth integrand), or the grid's outlook on them is hopeless (`outlook_drops_grid`), no grid
+    is trained at all; where the nets' first quarter shows `EARLY_MARGIN` times that gain, or
+    drops the grid so, the rest of them go unevaluated (shortcuts are taken outside `jit` only).
 
     The stream's budget depends only on how far the pilot went, QMC's early look,
     screening or training, not on whether a shortcut then skipped the grid or the mixture
@@ -387,7 +387,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     # In one dimension a grid is any piecewise-constant density: a mixture adds nothing.
     mixture_n = 0 if lo.size == 1 else min(round_size, MIXTURE_PILOT_POINTS)
     growth = min(final_net(screened_rest) / per_replica, MAX_NET_GROWTH)
-    # The first quarter of the nets may already show a clear win: the rest of the pilot's
+    # The first quarter of the nets may already decide for QMC: the rest of the pilot's
     # points then go to the stream (at 1e5, 3 nets of 2^15 instead of 5 of 2^14).
     early_rest = budget - qmc_n // 4
     early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)

@@ -333,10 +333,12 @@ def measure_nets(y, growth, bar, tail_gain=math.inf):
 
 def early_look_figures(bins, y, growth, bar) -> QMCFigures:
     """`measure_nets` of the early look's nets `y`, whose clear win must be
-    `SEPARABLE_EARLY_MARGIN` times `bar` where $f$ looks `separable`."""
+    `SEPARABLE_EARLY_MARGIN` times `bar` where $f$ looks `separable`; and their
+    `grid_outlook`."""
     product = separable(bins, y)
     qmc = measure_nets(y, growth, jnp.where(product, SEPARABLE_EARLY_MARGIN, 1.0) * bar)
-    return eqx.tree_at(lambda q: q.separable, qmc, product)
+    return eqx.tree_at(lambda q: (q.separable, q.grid_outlook), qmc,
+                       (product, grid_outlook(bins, y)))
 
 
 def whole_nets_figures(bins, y, early_win, growth, bar) -> QMCFigures:
