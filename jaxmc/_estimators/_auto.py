@@ -16,25 +16,25 @@ The candidates:
   (`separable`), which the grid fits exactly, only on the first quarter and by a wider
   margin, and the grid's screen does not drop it.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
-  (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget),
-  $\sigma^2_m$ of its last round (`_pilot_grid.grid_rounds`), hedged (a geometric
-  mean) with the scatter of its last `SCATTER_ROUNDS` rounds' means where that
-  round's own variance is `SCATTER_TRUST` times above it: a round's variance
-  comes from pairs of points in hypercubes, which a peak the grid has not yet
-  resolved inflates (100-1000x what the grid then realised on a 16-D camel, a
-  5-D posterior and a corner singularity). It is not trained at all where a product
-  density fitted to QMC's values would cost `OUTLOOK_MARGIN` times QMC, or more than QMC
-  where it gains little over plain MC (`outlook_drops_grid`). A young grid's variance says little of the trained one's
-  (`run_pilot`), so the grid is dropped after `SCREEN_ROUNDS` rounds only when, as it
-  stands, it is `SCREEN_MARGIN` times costlier than a QMC pilot that measured the
+  (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget), $\sigma^2_m$ of its
+  last round (`_pilot_grid.grid_rounds`), hedged (a geometric mean) with the scatter of its
+  last `SCATTER_ROUNDS` rounds' means where that round's own variance is `SCATTER_TRUST` times
+  above it: a round's variance comes from pairs of points in hypercubes, which a peak the grid
+  has not yet resolved inflates (100-1000x what the grid then realised on a 16-D camel, a 5-D
+  posterior and a corner singularity). It is not trained at all where a product density fitted
+  to QMC's values would cost `OUTLOOK_MARGIN` times QMC, or more than QMC where it gains
+  little over plain MC (`outlook_drops_grid`). A young grid's variance says little of the
+  trained one's (`run_pilot`), so the grid is dropped after `SCREEN_ROUNDS` rounds only when,
+  as it stands, it is `SCREEN_MARGIN` times costlier than a QMC pilot that measured the
   integrand, and never when QMC's values have a power-law tail (a young grid's rounds are then
   as heavy-tailed: $x^{-1/2}$ in 2-D measured 35-110 after 3 rounds, 0.4-0.6 after 10; a young
-  grid on the 8-D i-flow Gaussian measured 80 against QMC's 18, then trained to 0.35); otherwise
-  it trains in full and the choice is made on the trained grid. Under such a tail, in up to
-  `FINE_GRID_MAX_DIM` dimensions, its bins are `fine_grid_bins` (as vegas's many increments,
-  they resolve a singularity: 2.5x and 9x lower variance at 1e5). If the grid wins it refines
-  as `method="adaptive"` does after training (under the tail on larger rounds and 4x the bins,
-  `tail_refining`), with a tolerance then streams frozen; else training was the price of knowing.
+  grid on the 8-D i-flow Gaussian measured 80 against QMC's 18, then trained to 0.35);
+  otherwise it trains in full and the choice is made on the trained grid. Under such a tail,
+  in up to `FINE_GRID_MAX_DIM` dimensions, its bins are `fine_grid_bins` (as vegas's many
+  increments, they resolve a singularity: 2.5x and 9x lower variance at 1e5). If the grid wins
+  it refines as `method="adaptive"` does after training (under the tail on larger rounds and
+  4x the bins, `tail_refining`), with a tolerance then streams frozen; else training was the
+  price of knowing.
 - `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$
   with values $f/q$ (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's
   pilot's, measured and projected as its are): importance sampling from the
