@@ -137,8 +137,8 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     # (A narrow peak: no clear win, early or on the whole nets.)
     key, f = jax.random.key(3), peak(3, s=0.03)
     settings = dict(f=f, per_replica=512, batched=False)
-    early, bins, early_win, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
-    reused, _, _ = _qmc_pilot(key, lo, hi, (early, bins), early_win, growth=8.0, **settings)
+    early, bins, early_stop, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
+    reused, _, _ = _qmc_pilot(key, lo, hi, (early, bins), early_stop, growth=8.0, **settings)
     y, whole_bins = net_values(key, lo, hi, f, False, 0, 4, 7, True)
     whole = measure_nets(y, 8.0, clear_win_gain(512))
     whole = eqx.tree_at(lambda q: q.grid_outlook, whole, grid_outlook(whole_bins, y))
@@ -150,7 +150,7 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(reused)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10)
     # Under jit, where an early clear win cannot end the pilot, the verdict stands.
-    assert not bool(early_win) and not bool(reused.clear_win)
+    assert not bool(early_stop) and not bool(reused.clear_win)
     stands, _, _ = _qmc_pilot(key, lo, hi, (early, bins), jnp.asarray(True), growth=8.0,
                               **settings)
     assert bool(stands.clear_win)

@@ -242,19 +242,19 @@ def _early_verdict(bins, y, *, growth, bar):
     return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS)
 
 
-def _qmc_pilot(key, lo, hi, early, early_win, *, f, per_replica, growth, batched):
+def _qmc_pilot(key, lo, hi, early, early_stop, *, f, per_replica, growth, batched):
     """`QMC_REPLICAS` scrambled Sobol' nets of `per_replica` points, measured: `(QMCFigures,
     QMC's lone `Pilot`, whether they drop the grid, `outlook_drops_grid`)`. `early`,
-    `early_win`: their first quarter's values and bins, and its verdict (`_qmc_early_look`);
-    the rest is evaluated here; an early clear win stands."""
+    `early_stop`: their first quarter's values and bins, and its verdict (`_qmc_early_look`);
+    the rest is evaluated here; an early choice of QMC stands."""
     rest = net_values(key, lo, hi, f, batched, 1, 3, (per_replica // 4).bit_length() - 1, True)
-    return _qmc_figures(early, rest, early_win, growth=growth, bar=clear_win_gain(per_replica))
+    return _qmc_figures(early, rest, early_stop, growth=growth, bar=clear_win_gain(per_replica))
 
 
 @partial(jax.jit, static_argnames=("growth", "bar"))
-def _qmc_figures(early, rest, early_win, *, growth, bar):
+def _qmc_figures(early, rest, early_stop, *, growth, bar):
     y, bins = (jnp.concatenate(parts, axis=1) for parts in zip(early, rest))
-    qmc = whole_nets_figures(bins, y, early_win, growth, bar)
+    qmc = whole_nets_figures(bins, y, early_stop, growth, bar)
     return qmc, _alone(qmc, y.shape[1] * QMC_REPLICAS), outlook_drops_grid(qmc, *_OUTLOOK_COSTS)
 
 
@@ -391,12 +391,12 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     # points then go to the stream (at 1e5, 3 nets of 2^15 instead of 5 of 2^14).
     early_rest = budget - qmc_n // 4
     early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
-    early, early_bins, early_win, alone = _qmc_early_look(
+    early, early_bins, early_stop, alone = _qmc_early_look(
         key_qmc, lo, hi, f=f, per_replica=per_replica, growth=early_growth, batched=batched
     )
-    if is_concrete(early_win) and bool(early_win):
+    if is_concrete(early_stop) and bool(early_stop):
         return alone, None, None, early_rest
-    qmc, alone, unpromising = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_win, f=f,
+    qmc, alone, unpromising = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_stop, f=f,
                                          per_replica=per_replica, growth=growth, batched=batched)
     if is_concrete(qmc.clear_win) and (bool(qmc.clear_win) or bool(unpromising)):
         return alone, None, None, screened_rest

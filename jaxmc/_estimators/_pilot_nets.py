@@ -343,12 +343,13 @@ def early_look_figures(bins, y, growth, bar) -> QMCFigures:
                        (product, grid_outlook(bins, y)))
 
 
-def whole_nets_figures(bins, y, early_win, growth, bar) -> QMCFigures:
+def whole_nets_figures(bins, y, early_stop, growth, bar) -> QMCFigures:
     """`measure_nets` of the whole nets `y`: their clear win only where $f$ does not look
-    `separable` (a grid fits a product of one-dimensional factors exactly), or the early
-    look's (`early_win`, which stands); and their `grid_outlook`."""
+    `separable` (a grid fits a product of one-dimensional factors exactly), or where the early
+    look chose QMC (`early_stop`: its clear win, or a grid its outlook dropped); and their
+    `grid_outlook`."""
     qmc = measure_nets(y, growth, bar)
     product = separable(bins, y)
-    win = (qmc.clear_win & ~product) | early_win
+    win = (qmc.clear_win & ~product) | early_stop
     return eqx.tree_at(lambda q: (q.clear_win, q.separable, q.grid_outlook), qmc,
                        (win, product, grid_outlook(bins, y)))
