@@ -218,10 +218,10 @@ def test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc():
     # plain MC on them (2.9x and 1.5x), and costs more than QMC. No grid is screened (on
     # these keys it was, at 3-7x QMC's cost, and on key 2 of the resonance it trained in full
     # before QMC won; the resonance's key 3, which the test took before, now errs 5.3 of its
-    # standard errors of 2 degrees of freedom, the worst of 300 keys). The nets' first quarter shows it on both: the resonance's values read
-    # there as a power-law tail, but one that reaches a cap (`capped`; before it was read,
-    # the whole nets decided, and the stream had 5 nets of 2^14, not 3 of 2^15); on key 13
-    # the whole nets.
+    # standard errors of 2 degrees of freedom, the worst of 300 keys). The nets' first
+    # quarter shows it on both: the resonance's values read there as a power-law tail, but
+    # one that reaches a cap (`capped`; before it was read, the whole nets decided, and the
+    # stream had 5 nets of 2^14, not 3 of 2^15); on key 13 the whole nets.
     from jaxmc._estimators._pilot_nets import OUTLOOK_FLAT_GAIN
 
     alpha, d = 0.2, 4
@@ -503,6 +503,54 @@ def test_separable_reads_a_product_of_one_dimensional_factors():
     ball = lambda x: jnp.where(jnp.sum((x - 0.5) ** 2) < 0.2, 1.0, 0.0)
     assert not looks_separable(two_peaks) and not looks_separable(ball)
     assert not looks_separable(lambda x: jnp.exp(-5 * jnp.abs(x[0] - 0.4)), d=1)  # one factor
+
+
+def test_separable_reads_singular_factors_on_finer_bins():
+    # log x varies as much on [0, 1/16] as on [0, 1]: on 16 bins a singular factor's main
+    # effect leaves 1/16 of its variance unread, and x^-1/3 in 6-D read 0.91-0.93 (under 0.95).
+    # The pilot's 4096 points allow 64 bins per axis up to 6-D (chance share <= 0.1), 32 up to
+    # 13-D; x^-1/3 in 6-D and x^-1/2 in 2-D are products there, (sum x)^-3/2 in 4-D mostly not.
+    from jaxmc._estimators._pilot_nets import net_values, separable, separable_bins
+
+    assert [separable_bins(4096, d) for d in (2, 6, 7, 13, 14, 16)] == [64, 64, 32, 32, 16, 16]
+    assert [separable_bins(1024, d) for d in (1, 2, 3, 4)] == [64, 32, 32, 16]
+    power = lambda a: lambda x: jnp.prod(jnp.maximum(x, 1e-300) ** -a)
+    corner = lambda x: jnp.maximum(jnp.sum(x), 1e-300) ** -1.5
+    for f, d, product in ((power(1 / 3), 6, True), (power(1 / 2), 2, True), (corner, 4, False)):
+        verdicts = []
+        for seed in range(4):
+            y, bins = net_values(jax.random.key(seed), *box(d), f, False, 0, 1, 9, True)
+            verdicts.append(bool(separable(bins, y)))
+        assert verdicts == [product] * 4, (d, verdicts)
+
+
+def test_auto_reads_a_tail_qmc_missed_on_the_trained_grid():
+    # x^-1/3 in 6-D at 1e6: on keys 108 and 110 QMC's nets read k-hat 0.19 (no power-law tail)
+    # and their replicas' spread 0.065-0.10 per evaluation, below the trained grid's 0.17-0.20
+    # x 3, and QMC was chosen, erring 4.8e-4 and 9.6e-4 (the refining grid: 8e-5 RMS over 16
+    # keys). The grid's last round reads the tail (`tail_through_grid`): QMC is credited with
+    # plain MC's variance on its points, and the grid wins.
+    from jaxmc._estimators._pilot_grid import tail_through_grid
+    from jaxmc._estimators._pilot_nets import QMCFigures
+    from jaxmc.fit import Samples
+
+    d = 6
+    f = lambda x: (2 / 3) ** d * jnp.prod(jnp.maximum(x, 1e-300) ** (-1 / 3))
+    for seed in (108, 110):
+        est = jaxmc.integrate(jax.random.key(seed), f, *box(d), n=1_000_000)
+        assert est.method == "adaptive", (seed, est.pilot)
+        assert abs(float(est.mean) - 1) < min(5 * float(est.stderr), 4e-4), (seed, est)
+    # A tail of the grid's values marks QMC's figures heavy, at plain MC's variance.
+    light = QMCFigures(*(jnp.asarray(v) for v in (0.1, False, False, False, 3.0)))
+    rng, n = np.random.default_rng(0), 4096
+
+    def round_of(fx):  # a round's samples with these values of f/q
+        return Samples(jnp.zeros((n, 1)), jnp.asarray(fx), jnp.zeros(n), jnp.full(n, 1 / n))
+
+    told = tail_through_grid(light, round_of(rng.pareto(2.0, n)))  # k = 1/2
+    assert bool(told.heavy) and float(told.variance) == 3.0
+    untold = tail_through_grid(light, round_of(rng.uniform(1, 2, n)))
+    assert not bool(untold.heavy) and float(untold.variance) == 0.1
 
 
 def test_a_product_wins_early_only_by_a_wide_margin():

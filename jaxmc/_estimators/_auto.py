@@ -29,12 +29,12 @@ The candidates:
   integrand, and never when QMC's values have a power-law tail (a young grid's rounds are then
   as heavy-tailed: $x^{-1/2}$ in 2-D measured 35-110 after 3 rounds, 0.4-0.6 after 10; a young
   grid on the 8-D i-flow Gaussian measured 80 against QMC's 18, then trained to 0.35);
-  otherwise it trains in full and the choice is made on the trained grid. Under such a tail,
-  in up to `FINE_GRID_MAX_DIM` dimensions, its bins are `fine_grid_bins` (as vegas's many
-  increments, they resolve a singularity: 2.5x and 9x lower variance at 1e5). If the grid wins
-  it refines as `method="adaptive"` does after training (under the tail on larger rounds and
-  4x the bins, `tail_refining`), with a tolerance then streams frozen; else training was the
-  price of knowing.
+  otherwise it trains in full and the choice is made on the trained grid (a tail its last round
+  reads is QMC's too, `tail_through_grid`). Under such a tail, in up to `FINE_GRID_MAX_DIM`
+  dimensions, its bins are `fine_grid_bins` (as vegas's many increments, they resolve a
+  singularity: 2.5x and 9x lower variance at 1e5). If the grid wins it refines as
+  `method="adaptive"` does after training (under the tail on larger rounds and 4x the bins,
+  `tail_refining`), with a tolerance then streams frozen; else training was the price of knowing.
 - `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$
   with values $f/q$ (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's
   pilot's, measured and projected as its are): importance sampling from the
@@ -126,7 +126,7 @@ from .._checks import is_concrete
 from .._format import concrete, number
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, uniform_grid
 from ._mode_search import search_evaluations
-from ._pilot_grid import grid_qmc_pilot, grid_rounds, round_figures, run_rounds
+from ._pilot_grid import grid_qmc_pilot, grid_rounds, round_figures, run_rounds, tail_through_grid
 from ._pilot_mixture import follows_a_singularity, mixture_outlook, mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
@@ -392,8 +392,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     early_rest = budget - qmc_n // 4
     early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
     early, early_bins, early_stop, alone = _qmc_early_look(
-        key_qmc, lo, hi, f=f, per_replica=per_replica, growth=early_growth, batched=batched
-    )
+        key_qmc, lo, hi, f=f, per_replica=per_replica, growth=early_growth, batched=batched)
     if is_concrete(early_stop) and bool(early_stop):
         return alone, None, None, early_rest
     qmc, alone, unpromising = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_stop, f=f,
@@ -406,8 +405,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
     settings = dict(f=f, rounds=rounds, round_size=round_size, batched=batched)
     parts, state, samples = run_rounds(key_screen, grid, jnp.int32(screen), coarse, **settings)
     (v_grid, grid_blind), screened, screened_two, decided = _screen(
-        qmc, parts, samples, jnp.int32(screen), rounds=rounds, round_size=round_size
-    )
+        qmc, parts, samples, jnp.int32(screen), rounds=rounds, round_size=round_size)
     if is_concrete(decided) and bool(decided):
         variance, cost, choice = screened_two
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
@@ -416,6 +414,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         v_grid, grid_blind, state, samples = grid_rounds(
             key_train, state.grid, jnp.int32(rounds - screen), coarse, **settings
         )
+        qmc = tail_through_grid(qmc, samples)  # (a tail its nets missed)
     # The search for modes the mixture missed is budgeted whether or not it runs (it needs
     # the integrand's gradients; as a shortcut's, its evaluations are then left unspent).
     search_n = search_evaluations(lo.size) if mixture_n else 0
