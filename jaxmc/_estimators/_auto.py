@@ -281,8 +281,8 @@ def _first(choice, k):
 def _screen(qmc: QMCFigures, parts, samples, active, *, rounds, round_size):
     """QMC against the young grid (its rounds' estimates and last `Samples`, `run_rounds`):
     `(its figures, the choice, the choice restricted to the two, whether it is dropped)`."""
-    v_grid, grid_blind = round_figures(parts, samples, active, rounds=rounds,
-                                       round_size=round_size)
+    v_grid, grid_blind, _ = round_figures(parts, samples, active, rounds=rounds,
+                                          round_size=round_size)
     # Nothing is carried through a young grid, nor seeded from it; one its outlook drops is none.
     v_grid = jnp.where(outlook_drops_grid(qmc, *_OUTLOOK_COSTS), jnp.inf, v_grid)
     screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf, jnp.inf]),
@@ -411,10 +411,10 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
         return pilot, state, None, screened_rest
     if rounds > screen:
-        v_grid, grid_blind, state, samples = grid_rounds(
+        v_grid, grid_blind, grid_tail, state, samples = grid_rounds(
             key_train, state.grid, jnp.int32(rounds - screen), coarse, **settings
         )
-        qmc = tail_through_grid(qmc, samples)  # (a tail its nets missed)
+        qmc = tail_through_grid(qmc, grid_tail)  # (a tail its nets missed)
     # The search for modes the mixture missed is budgeted whether or not it runs (it needs
     # the integrand's gradients; as a shortcut's, its evaluations are then left unspent).
     search_n = search_evaluations(lo.size) if mixture_n else 0

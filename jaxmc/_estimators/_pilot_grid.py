@@ -44,8 +44,8 @@ GRID_QMC_TAIL_GAIN = 500.0
 
 def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
     """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_rounds`), measured:
-    the last round's relative variance per evaluation, whether it saw only zeros
-    (`round_figures`), the state after it and its `Samples`."""
+    the last round's relative variance per evaluation, whether it saw only zeros, whether its
+    values have a power-law tail (`round_figures`), the state after it and its `Samples`."""
     parts, state, samples = run_rounds(key, grid, active, coarse, f=f, rounds=rounds,
                                        round_size=round_size, batched=batched)
     figures = _round_figures(parts, samples, active, rounds=rounds, round_size=round_size)
@@ -70,11 +70,12 @@ def run_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batche
 def round_figures(parts, samples, active, *, rounds, round_size):
     """`run_rounds`'s figures (traceable; `grid_rounds` compiles them alone, `integrate`'s
     pilot with what it decides from them): the last round's relative variance per
-    evaluation (hedged by the recent rounds' scatter, see `SCATTER_TRUST`) and whether it
-    saw only zeros."""
+    evaluation (hedged by the recent rounds' scatter, see `SCATTER_TRUST`), whether it
+    saw only zeros, and whether its values $f/q$ have a power-law tail (`tail_through_grid`)."""
     last = active - 1
     values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
-    variance, _ = bounded_variance(parts.variance[last], parts.mean[last], tail_of(values))
+    tail = tail_of(values)
+    variance, _ = bounded_variance(parts.variance[last], parts.mean[last], tail)
     v_last = relative_variance(parts.mean[last], variance) * round_size
     # The scatter of the last SCATTER_ROUNDS rounds' means (the spread `method="adaptive"`
     # reports its error from), where the last round's own variance is far above it.
@@ -87,17 +88,19 @@ def round_figures(parts, samples, active, *, rounds, round_size):
     v_scatter = relative_variance(centre, spread) * round_size
     heavy = (active >= SCATTER_ROUNDS) & (v_last > SCATTER_TRUST * v_scatter)
     hedged = jnp.sqrt(v_last * v_scatter)  # the scatter of 5 rounds is itself uncertain
-    return jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0)
+    return (jnp.where(heavy, hedged, v_last), jnp.all(parts.mean[last] == 0),
+            jnp.any(power_law_tail(tail)))
 
 
 _round_figures = partial(jax.jit, static_argnames=("rounds", "round_size"))(round_figures)
 
 
 @jax.jit
-def tail_through_grid(qmc: QMCFigures, samples) -> QMCFigures:
-    r"""QMC's pilot figures `qmc`, told of a power-law tail of $f/q$ on the trained grid's last
-    round (`samples`): where QMC's own values showed none, its variance is credited with plain
-    MC's on its points, as under its own tail (`measure_nets`), and `heavy` is set.
+def tail_through_grid(qmc: QMCFigures, grid_tail) -> QMCFigures:
+    r"""QMC's pilot figures `qmc`, told whether the trained grid's last round read a power-law
+    tail of $f/q$ (`grid_tail`, `round_figures`): where it did and QMC's own values showed
+    none, QMC's variance is credited with plain MC's on its points, as under its own tail
+    (`measure_nets`), and `heavy` is set.
 
     A grid's density lies between bounds, so $f/q$ and $f$ share a tail, and the grid's round
     reads it on more values than QMC's nets (16,384 against 32,768 at 1e6, but from a density
@@ -105,8 +108,7 @@ def tail_through_grid(qmc: QMCFigures, samples) -> QMCFigures:
     $x^{-1/3}$ in 6-D at 1e6 (16 keys) read 0.19 on QMC's nets on 2 keys, whose replicas'
     spread then claimed 0.065-0.10 per evaluation against the trained grid's 0.17-0.20, and
     QMC erred 5e-4-1e-3 where the refining grid errs 8e-5."""
-    values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
-    told = jnp.any(power_law_tail(tail_of(values))) & ~qmc.heavy
+    told = grid_tail & ~qmc.heavy
     variance = jnp.where(told, jnp.maximum(qmc.variance, qmc.plain), qmc.variance)
     return eqx.tree_at(lambda q: (q.variance, q.heavy), qmc, (variance, qmc.heavy | told))
 

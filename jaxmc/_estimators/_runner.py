@@ -95,7 +95,7 @@ class Runner:
             if sizing == budget:
                 state = train_vegas_plus(train_key, self.f, grid, rounds, block, self.batched)
                 break
-            variance, blind, state, _ = grid_rounds(train_key, grid, jnp.int32(rounds), f=self.f,
+            variance, blind, _, state, _ = grid_rounds(train_key, grid, jnp.int32(rounds), f=self.f,
                                                     rounds=rounds, round_size=block,
                                                     batched=self.batched)
             if not is_concrete(variance) or (
