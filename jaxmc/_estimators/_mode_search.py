@@ -10,10 +10,11 @@ both sides: local ascent of $\log|f|$ from its best `MODE_STARTS` points
 (`optimistix.BFGS`, in logit coordinates of the box, at most `MODE_STEPS` steps)
 reaches the modes near them. A mode where the mixture puts far less density than
 the integrand asks, $|f(m)| > $ `UNDERCOVERED` $\hat I\,q(m)$ ($\hat I$ the grid's
-estimate), gets a Gaussian of its own (Laplace's approximation: the covariance
-$H^{-1}$ of $-\log|f|$ at $m$, its diagonal kept), at most `MODE_COMPONENTS` of
-them, one at a time, each judged against the mixture with the ones before, each in
-place of the fitted Gaussian of least weight.
+estimate, its largest weights capped: `_pilot_mixture.truncated_integral`), gets
+a Gaussian of its own (Laplace's approximation: the covariance $H^{-1}$ of
+$-\log|f|$ at $m$, its diagonal kept), at most `MODE_COMPONENTS` of them, one at
+a time, each judged against the mixture with the ones before, each in place of
+the fitted Gaussian of least weight.
 Its share of the Gaussians is its Laplace mass against $\hat I$:
 $Z/(\hat I + Z)$, $Z = |f(m)|\,(2\pi)^{d/2}\prod_j s_j$. A mode the grid
 itself undercovers so (`grid_misses_a_mode`) tells `_auto` that the grid's

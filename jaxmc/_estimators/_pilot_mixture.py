@@ -11,6 +11,7 @@ only the ascent to the modes and the values $f/p$ are compiled for each integran
 """
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import equinox as eqx
@@ -95,6 +96,25 @@ def _modes(qmc_key, lo, hi, early, *, f, batched):
                       _magnitude(jnp.reshape(early, (x.shape[0],) + early.shape[2:])))
 
 
+def truncated_integral(weights) -> jax.Array:
+    r"""$\hat I$ from a round's importance `weights` $c_i$ (`importance_weights`), each capped
+    at $\sqrt{n}\,\bar c$ (truncated importance sampling, Ionides 2008): the scale against
+    which `_mode_search` judges a mode undercovered, $|f(m)| > 10\,\hat I\,q(m)$, and sizes its
+    Gaussian's share.
+
+    A grid that holds one of two separated peaks samples the other rarely, at a tiny $q$:
+    one such point inflates the round's plain sum, and with it $\hat I$, which then hides the
+    very mode it came from. On i-flow's 16-D camel at 1e5, key 18, one point of 2048 made
+    the sum 5.5 against the truth 0.86; the mixture's density at the missed mode then fell
+    short of $|f|/\hat I$ by 5x, under the 10x that gets it a Gaussian, and the estimate came
+    out at 0.57 of the truth (z = -11.7). Capped, $\hat I$ is biased low (never high), which
+    makes the test only more ready to add a Gaussian at a mode; without such a point the cap
+    is not reached and $\hat I$ is the plain sum."""
+    n = weights.shape[0]
+    cap = math.sqrt(n) * jnp.mean(weights)
+    return jnp.sum(jnp.minimum(weights, cap))
+
+
 @partial(jax.jit, static_argnames="size")
 def _seeded_draw(key, mixture, grid, samples, modes, *, size):
     """The `mixture` seeded from `grid`'s `samples` with Gaussians at the `modes` it misses
@@ -102,7 +122,7 @@ def _seeded_draw(key, mixture, grid, samples, modes, *, size):
     the grid misses a mode)`."""
     grid_misses = jnp.asarray(False)
     if modes is not None:
-        integral = jnp.sum(importance_weights(samples))
+        integral = truncated_integral(importance_weights(samples))
         mixture = with_modes(mixture, integral, *modes)
         at, values, _, valid = modes
         grid_misses = grid_misses_a_mode(grid, integral, at, values, valid)
