@@ -195,7 +195,7 @@ def test_qmc_is_weighed_against_a_trained_grid_only_on_eight_effective_points_a_
         measure_nets,
     )
 
-    assert MIN_COMPARED_ESS == 8 * QMC_REPLICAS and MIN_PILOT_ESS < MIN_COMPARED_ESS
+    assert MIN_PILOT_ESS < MIN_COMPARED_ESS
     bar = clear_win_gain(4096)
     for hits, blind, early_blind in ((3, True, True), (5, True, False), (8, False, False)):
         y = jnp.zeros((QMC_REPLICAS, 4096)).at[:, 100:100 + hits].set(1.0)  # ESS 8 * hits

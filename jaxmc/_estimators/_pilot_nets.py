@@ -90,7 +90,7 @@ MIN_PILOT_ESS = 32.0  # fewer effective QMC pilot samples than this measure noth
 # 1e6 and i-flow's 8-D one, whose nets read 25-143, chose as before. The early look's verdicts
 # weigh QMC against plain MC on its own points, by margins: they keep `MIN_PILOT_ESS` (the 8-D
 # half-space and the 12-D resonance at 1e5 decide there on 36-45).
-MIN_COMPARED_ESS = 64.0
+MIN_COMPARED_ESS = 8.0 * QMC_REPLICAS
 MAX_NET_GROWTH = 32  # most the projection lets QMC's nets grow beyond the pilot's
 MAX_QMC_RATE = 2.0  # scrambled nets on smooth integrands: variance n^-3 (Owen 1997), r = 2
 # The pilot's points' bins on each axis (`net_values`): `grid_outlook` reads OUTLOOK_BINS of
