@@ -11,10 +11,10 @@ The candidates:
 - `"qmc"`: `QMC_REPLICAS` scrambled Sobol' nets (`_pilot_nets`): their spread's variance
   per evaluation, projected to the stream's net size at the rate the nets show; a clear win
   over plain Monte Carlo on the same points (a smooth integrand) skips the other candidates
-  (as does the grid's outlook, below), decided on the nets' first quarter where it is
-  already plain, else on the whole nets; where $f$ is a product of one-dimensional factors
-  (`separable`), which the grid fits exactly, only on the first quarter and by a wider
-  margin, and the grid's screen does not drop it.
+  (as does the grid's outlook, below, in or out of sample, `_held_out`), decided on the nets'
+  first quarter where it is already plain, else on the whole nets; where $f$ is a product of
+  one-dimensional factors (`separable`), which the grid fits exactly, only on the first
+  quarter and by a wider margin, and the grid's screen does not drop it.
 - `"adaptive"`: the VEGAS+ grid trained as `method="adaptive"` would train it
   (`jaxmc.fit.VegasPlus`, ten rounds on at most a quarter of the budget), $\sigma^2_m$ of its
   last round (`_pilot_grid.grid_rounds`), hedged (a geometric mean) with the scatter of its
@@ -125,6 +125,7 @@ import numpy as np
 from .._checks import is_concrete
 from .._format import concrete, number
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, uniform_grid
+from ._held_out import held_out_drops_grid
 from ._mode_search import search_evaluations
 from ._pilot_grid import grid_qmc_pilot, grid_rounds, round_figures, run_rounds, tail_through_grid
 from ._pilot_mixture import follows_a_singularity, mixture_outlook, mixture_pilot
@@ -226,7 +227,7 @@ def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
 def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured: `(their
     values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar or the grid's
-    outlook on them drops it (`outlook_drops_grid`), QMC's lone `Pilot`)`."""
+    outlook on them drops it (`outlook_drops_grid`, `held_out_drops_grid`), its lone `Pilot`)`."""
     quarter = per_replica // 4
     y, bins = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1, True)
     return (y, bins) + _early_verdict(bins, y, growth=growth,
@@ -238,7 +239,7 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
 @partial(jax.jit, static_argnames=("growth", "bar"))
 def _early_verdict(bins, y, *, growth, bar):
     qmc = early_look_figures(bins, y, growth, bar)
-    stop = qmc.clear_win | outlook_drops_grid(qmc, *_OUTLOOK_COSTS)
+    stop = qmc.clear_win | outlook_drops_grid(qmc, *_OUTLOOK_COSTS) | held_out_drops_grid(qmc, bins, y)
     return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS)
 
 

@@ -39,14 +39,15 @@ nets of that size, the other three quarters are not evaluated and go to the
 stream (at a budget of 1e5: 3 nets of 2^15 instead of 5 of 2^14, 2.4-4.8x
 less variance at QMC's rates); where $f$ looks `separable`, only at
 `SEPARABLE_EARLY_MARGIN` times that. So too where the grid's outlook on them
-(`grid_outlook`) drops the grid (`outlook_drops_grid`): on the quarter nets (4 keys of
-every `auto` case at 1e5, of 10 cases at 1e6) it did so only where QMC then won. There a
-power-law tail, which exempts the grid from the outlook, is none where the values reach a
-cap (`capped`): at 1e5 a peak's flank on a thousand values reads as one (the oblique
-resonances, k-hat 0.3-1.3 on the quarter nets, below 0 on the whole nets), and without the
-cap their whole nets decided, leaving the stream 5 nets of 2^14 (RMS relative error over 200
-keys: 1.05e-2 -> 9.0e-3 on the 4-D resonance, as `method="qmc"` errs there, 1.03e-2, and
-1.54e-2 -> 1.38e-2 on the 12-D one; median call 2.7 -> 1.9 ms on the 4-D one).
+(`grid_outlook`, or held out: `_held_out`) drops the grid (`outlook_drops_grid`): on the
+quarter nets (4 keys of every `auto` case at 1e5, of 10 cases at 1e6) it did so only where
+QMC then won. There a power-law tail, which exempts the grid from the outlook, is none
+where the values reach a cap (`capped`): at 1e5 a peak's flank on a thousand values reads
+as one (the oblique resonances, k-hat 0.3-1.3 on the quarter nets, below 0 on the whole
+nets), and without the cap their whole nets decided, leaving the stream 5 nets of 2^14
+(RMS relative error over 200 keys: 1.05e-2 -> 9.0e-3 on the 4-D resonance, as
+`method="qmc"` errs there, 1.03e-2, and 1.54e-2 -> 1.38e-2 on the 12-D one; median call
+2.7 -> 1.9 ms on the 4-D one).
 """
 from __future__ import annotations
 
@@ -306,16 +307,31 @@ def grid_net_values(key, grid, f, batched, log2_size):
     return jax.vmap(replica)(u)
 
 
+def product_log_density(index, square) -> jax.Array:
+    r"""VEGAS's product density fitted to values whose squared moduli `square` `(n,)` lie in
+    the per-axis `OUTLOOK_BINS` bins `index` `(n, d)` (`_axis_bins`): $\log q_j(b)$, flat
+    `(d * OUTLOOK_BINS,)` as `index` counts, $q_j(b) \propto \sqrt{\overline{|f|^2}_{jb}}$
+    (mean 1 over the bins, at least `OUTLOOK_FLOOR`). At points in bins `index`,
+    $\log \prod_j q_j$ is `jnp.sum(log_q[index], axis=1)`."""
+    d = index.shape[1]
+    sums = _axis_bin_sums(index, square, OUTLOOK_BINS)
+    counts = _axis_bin_sums(index, jnp.ones_like(square), OUTLOOK_BINS)
+    rms = jnp.reshape(jnp.sqrt(sums / jnp.maximum(counts, 1)), (d, OUTLOOK_BINS))
+    tiny = jnp.finfo(square.dtype).tiny
+    q = jnp.maximum(rms / jnp.maximum(jnp.mean(rms, axis=1, keepdims=True), tiny), OUTLOOK_FLOOR)
+    return jnp.log(jnp.reshape(q, (-1,)))
+
+
 def grid_outlook(bins, y) -> jax.Array:
     r"""What importance sampling from a product of per-axis densities could do for $f$, as
     read on its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, in `bins` (`net_values`):
-    VEGAS's density from the means of $|f|^2$ over `OUTLOOK_BINS` bins of each axis,
-    $q_j(b) \propto \sqrt{\overline{|f|^2}_{jb}}$ (mean 1 over the bins, at least
-    `OUTLOOK_FLOOR`), and its relative variance per evaluation on the same points,
+    VEGAS's density fitted to them (`product_log_density`) and its relative variance per
+    evaluation on the same points,
     $$\frac{\overline{|f|^2/\prod_j q_j}}{\bar f^2} - 1 \;\ge 0$$
     (summed over an array-valued $f$'s components). Fitted and read on the same points, it
-    flatters the density, most where the nets saw a peak through few points. 0 (no
-    outlook) in one dimension, where a grid is any piecewise-constant density."""
+    flatters the density, most where the nets saw a peak through few points (`_held_out`
+    reads it on points it was not fitted to). 0 (no outlook) in one dimension, where a grid is
+    any piecewise-constant density."""
     d = bins.shape[-1]
     if d == 1:
         return jnp.zeros((), y.dtype)
@@ -324,13 +340,9 @@ def grid_outlook(bins, y) -> jax.Array:
     scale = jnp.max(jnp.abs(values))  # (the ratio is scale-free; squares may overflow float32)
     values = values / jnp.where(scale > 0, scale, 1)
     square = jnp.sum(values**2, axis=1)
-    sums = _axis_bin_sums(index, square, OUTLOOK_BINS)
-    counts = _axis_bin_sums(index, jnp.ones_like(square), OUTLOOK_BINS)
-    rms = jnp.reshape(jnp.sqrt(sums / jnp.maximum(counts, 1)), (d, OUTLOOK_BINS))
-    tiny = jnp.finfo(square.dtype).tiny
-    q = jnp.maximum(rms / jnp.maximum(jnp.mean(rms, axis=1, keepdims=True), tiny), OUTLOOK_FLOOR)
-    log_q = jnp.sum(jnp.log(jnp.reshape(q, (-1,)))[index], axis=1)
+    log_q = jnp.sum(product_log_density(index, square)[index], axis=1)
     mean_square = jnp.sum(jnp.mean(values, axis=0) ** 2)
+    tiny = jnp.finfo(square.dtype).tiny
     ratio = jnp.mean(square * jnp.exp(-log_q)) / jnp.maximum(mean_square, tiny)
     return jnp.where(mean_square > 0, jnp.maximum(ratio - 1, 0.0), jnp.inf)
 
