@@ -28,45 +28,35 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._pilot_nets import OUTLOOK_BINS, QMCFigures, _axis_bins, product_log_density
+from ._pilot_nets import QMCFigures, outlook_read, outlook_values, product_log_density
 
 
 def held_out_outlook(bins, y) -> jax.Array:
     r"""`grid_outlook` held out: VEGAS's product density fitted (`product_log_density`) to the
     values `y` `(R, m, ...)` of the first half of the `R` replicas, in `bins` `(R, m, d)`
-    (`net_values`), its relative variance per evaluation read on the second half,
-    $\overline{|f|^2/\prod_j q_j} / \bar f^2 - 1$, and the same with the halves swapped;
-    the mean of the two. Not clipped at 0 (read on other points, it may fall below). 0 in
-    one dimension, where a grid is any piecewise-constant density."""
-    d, half = bins.shape[-1], y.shape[0] // 2
-    if d == 1:
+    (`net_values`), its relative variance per evaluation read on the second half
+    (`outlook_read`), and the same with the halves swapped; the mean of the two. Not clipped
+    at 0 (read on other points, it may fall below). 0 in one dimension, where a grid is any
+    piecewise-constant density."""
+    if bins.shape[-1] == 1:
         return jnp.zeros((), y.dtype)
-    values = jnp.reshape(y, (y.shape[0] * y.shape[1], -1))
-    scale = jnp.max(jnp.abs(values))  # (the ratio is scale-free; squares may overflow float32)
-    values = values / jnp.where(scale > 0, scale, 1)
-    square = jnp.sum(values**2, axis=1)
-    index = _axis_bins(bins, OUTLOOK_BINS)
-    tiny = jnp.finfo(square.dtype).tiny
-    split = half * y.shape[1]  # the first half's points, replica by replica
-    halves = (slice(0, split), slice(split, None))
-    ratios = []
-    for fit, read in (halves, halves[::-1]):
+    index, values, square = outlook_values(bins, y)
+    split = y.shape[0] // 2 * y.shape[1]  # the first half's points, replica by replica
+    a, b = slice(0, split), slice(split, None)
+
+    def read(fit, on):  # the density fitted on one half, read on the other
         log_q = product_log_density(index[fit], square[fit])
-        mean_square = jnp.sum(jnp.mean(values[read], axis=0) ** 2)
-        # (Zeros stay zero where 1/q overflows: at the floor on 16 axes, 1e48 > float32's range.)
-        weight = jnp.exp(-jnp.sum(log_q[index[read]], axis=1))
-        second = jnp.mean(jnp.where(square[read] > 0, square[read] * weight, 0.0))
-        ratios.append(jnp.where(mean_square > 0,
-                                second / jnp.maximum(mean_square, tiny) - 1, jnp.inf))
-    return (ratios[0] + ratios[1]) / 2
+        return outlook_read(log_q, index[on], values[on], square[on])
+
+    return (read(a, b) + read(b, a)) / 2
 
 
 def held_out_drops_grid(qmc: QMCFigures, bins, y) -> jax.Array:
     """Whether the grid is not trained at all: a product density held out on the values `y`
-    in `bins` (`held_out_outlook`) does no better than uniform sampling, at least plain MC's relative
-    variance per evaluation (`qmc.plain`) on the same points, with QMC's exemptions from
-    `outlook_drops_grid`: values that missed the integrand or few effective points (blind),
-    a power-law tail that does not reach a cap, a product of one-dimensional factors."""
+    in `bins` (`held_out_outlook`) does no better than uniform sampling, at least plain MC's
+    relative variance per evaluation (`qmc.plain`) on the same points, with QMC's exemptions
+    from `outlook_drops_grid`: values that missed the integrand or few effective points
+    (blind), a power-law tail that does not reach a cap, a product of one-dimensional factors."""
     held_out = held_out_outlook(bins, y)
     useless = (held_out >= qmc.plain) & (held_out > 0)
     return useless & ~qmc.blind & ~(qmc.heavy & ~qmc.capped) & ~qmc.separable

@@ -307,44 +307,49 @@ def grid_net_values(key, grid, f, batched, log2_size):
     return jax.vmap(replica)(u)
 
 
+def outlook_values(bins, y) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`(each point's bins, values, squared moduli)` of `y` `(R, m, ...)` for an outlook: flat,
+    `OUTLOOK_BINS` per axis, in units of the largest value (squares may overflow float32)."""
+    index = _axis_bins(bins, OUTLOOK_BINS)
+    values = jnp.reshape(y, (index.shape[0], -1))
+    scale = jnp.max(jnp.abs(values))
+    values = values / jnp.where(scale > 0, scale, 1)
+    return index, values, jnp.sum(values**2, axis=1)
+
+
 def product_log_density(index, square) -> jax.Array:
-    r"""VEGAS's product density fitted to values whose squared moduli `square` `(n,)` lie in
-    the per-axis `OUTLOOK_BINS` bins `index` `(n, d)` (`_axis_bins`): $\log q_j(b)$, flat
-    `(d * OUTLOOK_BINS,)` as `index` counts, $q_j(b) \propto \sqrt{\overline{|f|^2}_{jb}}$
-    (mean 1 over the bins, at least `OUTLOOK_FLOOR`). At points in bins `index`,
-    $\log \prod_j q_j$ is `jnp.sum(log_q[index], axis=1)`."""
+    r"""$\log q_j(b)$, $q_j(b) \propto \sqrt{\overline{f^2}_{jb}}$: mean 1, `OUTLOOK_FLOOR` least"""
     d = index.shape[1]
     sums = _axis_bin_sums(index, square, OUTLOOK_BINS)
     counts = _axis_bin_sums(index, jnp.ones_like(square), OUTLOOK_BINS)
     rms = jnp.reshape(jnp.sqrt(sums / jnp.maximum(counts, 1)), (d, OUTLOOK_BINS))
-    tiny = jnp.finfo(square.dtype).tiny
-    q = jnp.maximum(rms / jnp.maximum(jnp.mean(rms, axis=1, keepdims=True), tiny), OUTLOOK_FLOOR)
-    return jnp.log(jnp.reshape(q, (-1,)))
+    mean = jnp.maximum(jnp.mean(rms, axis=1, keepdims=True), jnp.finfo(square.dtype).tiny)
+    return jnp.log(jnp.reshape(jnp.maximum(rms / mean, OUTLOOK_FLOOR), (-1,)))
+
+
+def outlook_read(log_q, index, values, square) -> jax.Array:
+    r"""The density `log_q`'s relative variance per evaluation read on points (`outlook_values`),
+    $\overline{|f|^2/\prod_j q_j} / \bar f^2 - 1$ (`inf` if all are 0); $f = 0$ adds 0 even where
+    $1/\prod_j q_j$ overflows (the floor on 13 of 16 axes in float32), never NaN."""
+    weight = jnp.exp(-jnp.sum(log_q[index], axis=1))
+    second = jnp.mean(jnp.where(square > 0, square * weight, 0.0))
+    mean_square = jnp.sum(jnp.mean(values, axis=0) ** 2)
+    ratio = second / jnp.maximum(mean_square, jnp.finfo(square.dtype).tiny)
+    return jnp.where(mean_square > 0, ratio - 1, jnp.inf)
 
 
 def grid_outlook(bins, y) -> jax.Array:
     r"""What importance sampling from a product of per-axis densities could do for $f$, as
     read on its values `y` `(QMC_REPLICAS, m, ...)` on the pilot's nets, in `bins` (`net_values`):
     VEGAS's density fitted to them (`product_log_density`) and its relative variance per
-    evaluation on the same points,
-    $$\frac{\overline{|f|^2/\prod_j q_j}}{\bar f^2} - 1 \;\ge 0$$
-    (summed over an array-valued $f$'s components). Fitted and read on the same points, it
-    flatters the density, most where the nets saw a peak through few points (`_held_out`
-    reads it on points it was not fitted to). 0 (no outlook) in one dimension, where a grid is
-    any piecewise-constant density."""
-    d = bins.shape[-1]
-    if d == 1:
+    evaluation on the same points (`outlook_read`, at least 0; summed over an array-valued
+    $f$'s components). Fitted and read on the same points, it flatters the density, most where
+    the nets saw a peak through few points (`_held_out` reads it on points it was not fitted
+    to). 0 (no outlook) in one dimension, where a grid is any piecewise-constant density."""
+    if bins.shape[-1] == 1:
         return jnp.zeros((), y.dtype)
-    index = _axis_bins(bins, OUTLOOK_BINS)
-    values = jnp.reshape(y, (index.shape[0], -1))
-    scale = jnp.max(jnp.abs(values))  # (the ratio is scale-free; squares may overflow float32)
-    values = values / jnp.where(scale > 0, scale, 1)
-    square = jnp.sum(values**2, axis=1)
-    log_q = jnp.sum(product_log_density(index, square)[index], axis=1)
-    mean_square = jnp.sum(jnp.mean(values, axis=0) ** 2)
-    tiny = jnp.finfo(square.dtype).tiny
-    ratio = jnp.mean(square * jnp.exp(-log_q)) / jnp.maximum(mean_square, tiny)
-    return jnp.where(mean_square > 0, jnp.maximum(ratio - 1, 0.0), jnp.inf)
+    index, values, square = outlook_values(bins, y)
+    return jnp.maximum(outlook_read(product_log_density(index, square), index, values, square), 0)
 
 
 def outlook_drops_grid(qmc: QMCFigures, grid_cost: float, seeded_best: float) -> jax.Array:
