@@ -1,5 +1,7 @@
 """Adaptation rules as objects: `adapt` over any rule, custom rules, `chain` and its seeds."""
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -204,6 +206,31 @@ def test_coarse_vegas_plus_runs_the_coarse_grid_held_in_more_bins(key):
         assert bool(got_state.coarse) == flag
     with pytest.raises(ValueError, match="coarse_bins"):
         rounds(VegasPlus(coarse_bins=24, coarse=True), 64)
+
+
+def test_vegas_plus_refines_on_each_bins_mean(key):
+    r"""A VEGAS+ round refines on each bin's weighted mean of $(f/p)^2$, not its sum: where
+    $f/p$ is flat the grid stays put whatever the number of points in each bin, and a fine
+    grid trained on $\prod_i x_i^{-1/3}$ in 6-D as `integrate` trains it (256 bins, then
+    split 4x and refined) samples it with i.i.d. relative variance ~0.0075 (3 keys
+    0.0071-0.0080; vegas's map after its run, 0.006). Summed, the counts' noise, with 1% of
+    the bins held as the defensive share, left it at 0.019-0.021."""
+    grid = Grid(LO, HI, 64)
+    state = VegasPlus().init(key, grid, 4096)
+    flat = VegasPlus().step(key, 0, state, Integrand(lambda x: jnp.float64(2.0)))[0].grid
+    np.testing.assert_allclose(flat.edges, grid.edges, atol=1e-12)
+
+    d = 6
+    f = lambda x: jnp.prod(x ** (-1 / 3)) * (2 / 3) ** d  # noqa: E731 (integral 1)
+    with warnings.catch_warnings():  # (the rounds' error bars may warn of the tail)
+        warnings.simplefilter("ignore", jaxmc.ReliabilityWarning)
+        _, grid = adapt(key, f, Grid(jnp.zeros(d), jnp.ones(d), 256), iterations=10,
+                        n_per_iteration=2048)
+        _, grid = adapt(jax.random.fold_in(key, 1), f, grid.subdivided(4), iterations=8,
+                        n_per_iteration=8192)
+    x, log_q = grid.map(jax.random.uniform(jax.random.fold_in(key, 2), (100_000, d)))
+    w = jax.vmap(f)(x) / jnp.exp(log_q)
+    assert float(jnp.var(w) / jnp.mean(w) ** 2) < 0.011
 
 
 def test_chain_seeds_a_mixture_from_the_grid(key):

@@ -283,6 +283,18 @@ def test_grid_refine_vegas_rule(key):
     np.testing.assert_allclose(g2.edges[0], optimal, atol=0.035)
 
 
+@pytest.mark.parametrize("bins", [64, 256, 1024])
+def test_grid_refine_defensive_share_is_fixed_in_bins(bins):
+    """Where f = 0 (x > 1/2) the refined grid keeps about two bins at any resolution: the
+    defensive share is 1% up to 64 bins and the mass of 0.64 bins above. A share of 1% at
+    every resolution would keep 2.9 bins there at 256 and 6.8 at 1024."""
+    grid = Grid(0.0, 1.0, bins)
+    x = (jnp.arange(bins) + 0.5) / bins
+    edges = np.asarray(grid.refine(x, jnp.where(x < 0.5, 1.0, 0.0)).edges[0])
+    bins_where_zero = bins - np.interp(0.5, edges, np.arange(bins + 1))
+    assert 1.8 < bins_where_zero < 2.2
+
+
 def test_partition_cells_tile_the_box(key):
     """The leaves are disjoint dyadic boxes covering the box; points are located in theirs."""
     part = _grown_partition(key, LO2, HI2, cells=128)

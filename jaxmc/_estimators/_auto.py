@@ -34,70 +34,61 @@ The candidates:
   dimensions, its bins are `fine_grid_bins` (as vegas's many increments, they resolve a
   singularity: 2.5x and 9x lower variance at 1e5). If the grid wins it refines as
   `method="adaptive"` does after training (under the tail on larger rounds and 4x the bins,
-  `tail_refining`), with a tolerance then streams frozen; else training was the price of knowing.
-- `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$
-  with values $f/q$ (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's
-  pilot's, measured and projected as its are): importance sampling from the
-  grid, with QMC's rate on what is left, $f/q$, flatter and smoother than $f$
-  where the grid fits. It streams as `method="qmc"` does, on the frozen grid.
-  Measured at $10^5$ (16 keys, RMS relative error, against `method="adaptive"`,
-  which starts from the same training): Genz's 8-D corner peak 8.3e-6 against
-  4.4e-4, his 16-D one 3.8e-5 against 4.1e-4, his 8-D continuous 9.6e-6 against
-  4.7e-4, vegas's 4-D Gaussian 1.3e-4 against 2.0e-3, i-flow's 8-D Gaussian
-  2.7e-4 against 1.1e-3. It is a candidate only where it fits: plain Monte
-  Carlo's variance through the grid below `GRID_QMC_MAX_VARIANCE` (a grid that
-  loose goes on adapting, a frozen one does not: the 10-D ball's measured
-  25-170, and QMC through it erred 10x as much as the refined grid), and values
-  $f/q$ with no power-law tail (`QMCFigures.heavy`): there the replicas' spread
-  understates the error, the stream reports the i.i.d. bound instead, and
-  the refining grid's rounds give the tighter honest error bar (x^-1/3 in 6-D
-  and (sum x)^-3/2 in 4-D: 2.5-3x lower actual error through the grid, error bars
+  `tail_refining`, for which its figure is credited, `credited_for_refining`), with a tolerance
+  then streams frozen; else training was the price of knowing.
+- `"grid_qmc"`: QMC's nets carried through the trained grid's map, $x = G(u)$ with values $f/q$
+  (`grid_qmc_pilot`: `QMC_REPLICAS` nets as large as QMC's pilot's, measured and projected as
+  its are): importance sampling from the grid, with QMC's rate on what is left, $f/q$, flatter
+  and smoother than $f$ where the grid fits. It streams as `method="qmc"` does, on the frozen
+  grid. Measured at $10^5$ (16 keys, RMS relative error, against `method="adaptive"`, which
+  starts from the same training): Genz's 8-D corner peak 8.3e-6 against 4.4e-4, his 16-D one
+  3.8e-5 against 4.1e-4, his 8-D continuous 9.6e-6 against 4.7e-4, vegas's 4-D Gaussian 1.3e-4
+  against 2.0e-3, i-flow's 8-D Gaussian 2.7e-4 against 1.1e-3. It is a candidate only where it
+  fits: plain Monte Carlo's variance through the grid below `GRID_QMC_MAX_VARIANCE` (a grid that
+  loose goes on adapting, a frozen one does not: the 10-D ball's measured 25-170, and QMC
+  through it erred 10x as much as the refined grid), and values $f/q$ with no power-law tail
+  (`QMCFigures.heavy`): there the replicas' spread understates the error, the stream reports the
+  i.i.d. bound instead, and the refining grid's rounds give the tighter honest error bar (x^-1/3
+  in 6-D and (sum x)^-3/2 in 4-D: 2.5-3x lower actual error through the grid, error bars
   conservative and flagged; x^-1/2 in 2-D, infinite variance: 2x higher).
-- `"mixture"`: a Gaussian mixture seeded from the trained grid's last round
-  (`_seeded_mixture`: `GaussianMixture.from_samples` on the weights $|f|\,w/q$, EM
-  towards the density $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed
-  with the grid itself at `DEFENSIVE_SHARE` (defensive importance sampling,
-  Hesterberg 1995), measured on up to `MIXTURE_PILOT_POINTS` points, each part
-  drawing its share of them (`Mixture(..., stratified=True)`: no point is drawn
-  twice, once by each part, and then chosen between them). A grid can lock onto
-  one of several separated peaks, and the mixture seeded from it with it: before
-  it is measured, an ascent of $\log|f|$ from the QMC pilot's best points
-  (`_mode_search`, where JAX can differentiate $f$) finds the modes near them,
-  and a mode where the mixture's density falls far short of the integrand gets a
-  Gaussian of its own (i-flow's 16-D camel at $10^5$: 7 keys of 10 had held one
-  of its two modes, estimates half the truth at 5-750 standard errors; with the
-  search, 10 of 10 within 2). Before the search and those points are paid for, the
-  seeded mixture is judged on the grid's own points (`mixture_outlook`, no evaluation of
-  $f$), and not measured where it would cost `MIXTURE_HOPELESS` times QMC or the grid; not
-  even seeded where the grid follows a singularity (`follows_a_singularity`): Gaussians do not.
-  A grid is a product of axis densities: a peak along a diagonal, or several
-  peaks, make it put mass on every combination of the axes' bins, which a
-  mixture of Gaussians does not (measured, variance per evaluation against the
-  trained grid's at $10^5$: 80-3e5x lower on a correlated 5-D posterior, 5-8x
-  on vegas's and i-flow's Gaussians and camels, but 100-200x higher on broad
-  Genz peaks and the corner peak, where the grid wins). Its values are bounded
-  wherever the grid's are, $p \ge 0.1\,q_{grid}$ giving $E_p[(f/p)^2] \le
-  10\,E_{q_{grid}}[(f/q_{grid})^2]$, so a heavy-looking tail does not
-  disqualify its pilot (on the posterior the pilot's Pareto $\hat k$ is
-  0.4-0.75 at variances 100x and more below the grid's); but it is a candidate
-  only if it fits well, relative variance per evaluation below
-  `_pilot_mixture.MIXTURE_MAX_VARIANCE`: the grid's figure is its last training round's, and
-  the grid goes on adapting (on the 10-D ball it measured 200-2000 and then
-  ran at ~4). Unless the grid itself falls `UNDERCOVERED` times short of
-  $|f|/\hat I$ at a mode the search found (`grid_misses_a_mode`): its figure
-  then hides mass it does not sample, and it is no candidate against a mixture
-  with a figure, loose or not (on the 16-D camel at $10^5$, 24 keys: 2 had
-  taken the grid, one measured at 1.3e3 against a loose mixture's 85, and
-  returned half the truth, at up to 219 standard errors; none do now, RMS
-  error 0.11 -> 1.8e-3; two 4-D Gaussians on the diagonal: the grid had won on
-  15 keys of 24, now the mixture on all, RMS error 1.9e-3 -> 9.8e-4; 5-D
-  posterior 6.0e-3 -> 4.3e-3). If the mixture wins, it adapts too, twice:
-  refitted to its pilot's points, then to a tenth of the rest of the budget
-  drawn from that refit (`adapted_mixture`: population Monte Carlo; 6-26x lower
-  variance on the posterior, the 16-D camel and the 10-D ball), each refit with
-  a wide Gaussian among its parts that bounds the weights where the fitted ones
-  fall faster than $f$ (`_with_wide_gaussian`). What is left streams from it
-  (`method="importance"` blocks of `_stream`), to the budget or the tolerance.
+- `"mixture"`: a Gaussian mixture seeded from the trained grid's last round (`_seeded_mixture`:
+  `GaussianMixture.from_samples` on the weights $|f|\,w/q$, EM towards the density $\propto
+  |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed with the grid itself at
+  `DEFENSIVE_SHARE` (defensive importance sampling, Hesterberg 1995), measured on up to
+  `MIXTURE_PILOT_POINTS` points, each part drawing its share of them (`Mixture(...,
+  stratified=True)`: no point is drawn twice, once by each part, and then chosen between them).
+  A grid can lock onto one of several separated peaks, and the mixture seeded from it with it:
+  before it is measured, an ascent of $\log|f|$ from the QMC pilot's best points
+  (`_mode_search`, where JAX can differentiate $f$) finds the modes near them, and a mode where
+  the mixture's density falls far short of the integrand gets a Gaussian of its own (i-flow's
+  16-D camel at $10^5$: 7 keys of 10 had held one of its two modes, estimates half the truth at
+  5-750 standard errors; with the search, 10 of 10 within 2). Before the search and those points
+  are paid for, the seeded mixture is judged on the grid's own points (`mixture_outlook`, no
+  evaluation of $f$), and not measured where it would cost `MIXTURE_HOPELESS` times QMC or the
+  grid; not even seeded where the grid follows a singularity (`follows_a_singularity`):
+  Gaussians do not. A grid is a product of axis densities: a peak along a diagonal, or several
+  peaks, make it put mass on every combination of the axes' bins, which a mixture of Gaussians
+  does not (measured, variance per evaluation against the trained grid's at $10^5$: 80-3e5x
+  lower on a correlated 5-D posterior, 5-8x on vegas's and i-flow's Gaussians and camels, but
+  100-200x higher on broad Genz peaks and the corner peak, where the grid wins). Its values are
+  bounded wherever the grid's are, $p \ge 0.1\,q_{grid}$ giving $E_p[(f/p)^2] \le
+  10\,E_{q_{grid}}[(f/q_{grid})^2]$, so a heavy-looking tail does not disqualify its pilot (on
+  the posterior the pilot's Pareto $\hat k$ is 0.4-0.75 at variances 100x and more below the
+  grid's); but it is a candidate only if it fits well, relative variance per evaluation below
+  `_pilot_mixture.MIXTURE_MAX_VARIANCE`: the grid's figure is its last training round's, and the
+  grid goes on adapting (on the 10-D ball it measured 200-2000 and then ran at ~4). Unless the
+  grid itself falls `UNDERCOVERED` times short of $|f|/\hat I$ at a mode the search found
+  (`grid_misses_a_mode`): its figure then hides mass it does not sample, and it is no candidate
+  against a mixture with a figure, loose or not (on the 16-D camel at $10^5$, 24 keys: 2 had
+  taken the grid, one measured at 1.3e3 against a loose mixture's 85, and returned half the
+  truth, at up to 219 standard errors; none do now, RMS error 0.11 -> 1.8e-3; two 4-D Gaussians
+  on the diagonal: the grid had won on 15 keys of 24, now the mixture on all, RMS error 1.9e-3
+  -> 9.8e-4; 5-D posterior 6.0e-3 -> 4.3e-3). If the mixture wins, it adapts too, twice:
+  refitted to its pilot's points, then to a tenth of the rest of the budget drawn from that
+  refit (`adapted_mixture`: population Monte Carlo; 6-26x lower variance on the posterior, the
+  16-D camel and the 10-D ball), each refit with a wide Gaussian among its parts that bounds the
+  weights where the fitted ones fall faster than $f$ (`_with_wide_gaussian`). What is left
+  streams from it (`method="importance"` blocks of `_stream`), to the budget or the tolerance.
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock readings, so
 `"auto"` is deterministic in `(key, n)`: the grid's map, its training and the stratified
@@ -124,10 +115,17 @@ import numpy as np
 
 from .._checks import is_concrete
 from .._format import concrete, number
-from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, uniform_grid
+from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, tail_refining, uniform_grid
 from ._held_out import held_out_drops_grid
 from ._mode_search import search_evaluations
-from ._pilot_grid import grid_qmc_pilot, grid_rounds, round_figures, run_rounds, tail_through_grid
+from ._pilot_grid import (
+    credited_for_refining,
+    grid_qmc_pilot,
+    grid_rounds,
+    round_figures,
+    run_rounds,
+    tail_through_grid,
+)
 from ._pilot_mixture import follows_a_singularity, mixture_outlook, mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
@@ -167,18 +165,14 @@ MIXTURE_HOPELESS = 4.0
 # those 41 runs (camel 4-D, annulus, oblique resonances, 3-D ball, half-space), which
 # trained the grid and fitted a mixture at 20x. At 3x, over 10 keys at 1e5, camel 4-D, the
 # 12-D resonance and the half-space took 1.7-2x less time, the 4-D resonance 1.2x (the
-# estimates unchanged, or from larger nets). Before the power-law exemption, the 4-D
-# corner singularity (11-20x young, 0.01-2.4x trained) and i-flow's 8-D Gaussian (a young
-# grid 80 per evaluation against QMC's 18, then 0.35) kept this at 20; both are exempt. The
-# grid's fall from its first round to its third said nothing of the rest (extrapolated, it
-# promised 1e-5 of QMC's cost on 8-D discontinuities that it ended at 10-300x). With the
-# exemption, 3x -> 2x (keys 100-115 at 1e5, 100-111 at 1e6): the 4-D resonance trained the
-# grid on 6 keys of 16 instead of 11 (QMC then won on 3 and 8 of them), 2.2x the efficiency
-# at 1e5 (median time 13.8 -> 6.4 ms) and 1.4x at 1e6 (`auto` suite at 1e5: ratio 0.18 ->
-# 0.50); the 12-D one 1.2x at 1e5; the 4-D camel took QMC on the 3 keys of 16 where QMC
-# through the trained grid had won (RMS error 3.7e-4 -> 4.1e-4, efficiency 0.96x); the
-# 10-D ball, the 3-D ball, the annulus, the 8-D half-space and Genz's 8-D continuous and
-# discontinuous chose as before.
+# estimates unchanged, or from larger nets); the 4-D corner singularity and i-flow's 8-D
+# Gaussian (young 80 per evaluation against QMC's 18, then 0.35) kept it at 20 before their
+# power-law exemption. With it, 3x -> 2x (keys 100-115 at 1e5, 100-111 at 1e6): the 4-D
+# resonance trained the grid on 6 keys of 16 instead of 11 (QMC then won on 3 and 8 of
+# them), 2.2x the efficiency at 1e5 and 1.4x at 1e6; the 12-D one 1.2x at 1e5; the 4-D
+# camel took QMC on the 3 keys of 16 where QMC through the trained grid had won (RMS error
+# 3.7e-4 -> 4.1e-4); the 10-D ball, the 3-D ball, the annulus, the 8-D half-space and
+# Genz's 8-D continuous and discontinuous chose as before.
 SCREEN_MARGIN = 2.0
 
 
@@ -347,7 +341,7 @@ def split_keys(key):
     return key, tuple(jax.random.split(pilot_key, 4))
 
 
-def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
+def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=False):
     """Run the candidates' pilots (`keys`: the pilot's four, `split_keys`); returns
     `(Pilot, trained VEGAS+ state or None, (seeded mixture, its pilot's points and values)
     or None, evaluations left for the winner's stream)`.
@@ -426,6 +420,8 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size):
         growth=min(final_net(trained_rest) / per_replica, MAX_NET_GROWTH), batched=batched,
     )
     trained_n = (qmc_n, rounds * round_size, grid_qmc_n)
+    if lo.size <= FINE_GRID_MAX_DIM and not tolerant and tail_refining(trained_rest, round_size)[0]:
+        v_grid = credited_for_refining(v_grid, coarse, qmc, grid_qmc)  # (a fine grid refines on)
     # No mixture measured so far has gone below MIXTURE_FLOOR: when another candidate already
     # costs less, or the grid follows a singularity, none is fitted (outside jit only).
     (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, grid_qmc,

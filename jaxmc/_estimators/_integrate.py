@@ -274,7 +274,7 @@ def integrate(
     if method == "auto":
         key, pilot_keys = split_keys(key)
         pilot, state, mixture, rest, sized_rest, block, spent = _sized_pilot(
-            pilot_keys, f, lo, hi, budget, batched, probe_rtol
+            pilot_keys, f, lo, hi, budget, batched, probe_rtol, tolerant
         )
         branches = (
             lambda: run.qmc(key, rest, spent),
@@ -332,7 +332,7 @@ def _staged() -> bool:
     return not is_concrete(jnp.zeros(()))
 
 
-def _sized_pilot(keys, f, lo, hi, budget, batched, rtol):
+def _sized_pilot(keys, f, lo, hi, budget, batched, rtol, tolerant):
     """`run_pilot` sized for `budget`, or, given `rtol` (a tolerance run outside `jit`), first
     for `PROBE_BUDGET` (see there). Returns `(Pilot, grid state, mixture, the stream's
     budget, what the budget that sized the pilot left of it, the pilot's round size,
@@ -343,7 +343,8 @@ def _sized_pilot(keys, f, lo, hi, budget, batched, rtol):
     for sizing in ([min(budget, PROBE_BUDGET)] if rtol is not None else []) + [budget]:
         block = adaptive_block(sizing)
         rounds = training_rounds(sizing, block)
-        pilot, state, mixture, rest = run_pilot(keys, f, lo, hi, sizing, batched, rounds, block)
+        pilot, state, mixture, rest = run_pilot(keys, f, lo, hi, sizing, batched, rounds, block,
+                                                tolerant)
         if sizing == budget or not concrete(pilot):
             break
         choice = int(pilot.choice)

@@ -274,11 +274,12 @@ class VegasPlus(AbstractAdaptation):
         )
         est = _in_units(est, unit)
         sigma = jnp.sqrt(jnp.sum(jnp.reshape(var_h, (h, -1)), axis=-1))
-        # Each sample stands for volume v / n_h of the unit cube: the per-bin sums
-        # estimate the integral of (f/p)^2 over each bin, whatever the allocation.
+        # Each sample stands for volume v / n_h of the unit cube: each bin's mean of (f/p)^2,
+        # weighted so, whatever the allocation (a ratio estimate, `Grid.refine_bins`).
         weight = vol / draw.counts.astype(y.dtype)[draw.cube]
         grid = grid.refine_bins(bins, weight * _sq_norm(scaled), alpha=self.alpha,
-                                coarse_bins=self.coarse_bins, coarse=state.coarse)
+                                coarse_bins=self.coarse_bins, coarse=state.coarse,
+                                point_weights=weight)
         samples = Samples(x, fx, log_p, weight)
         next_draw = self._stratified_draw(key, index + 1, sigma, n, grid)
         return VegasPlusState(grid, next_draw, grid.lookup_table(), state.coarse), est, samples

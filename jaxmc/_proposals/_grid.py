@@ -176,8 +176,8 @@ class Grid(AbstractUnitMap):
         if given), smoothed $d_i \leftarrow (d_{i-1} + 6 d_i + d_{i+1})/8$,
         normalised, and damped
         $$d_i \leftarrow \Big(\frac{1 - d_i}{\log(1/d_i)}\Big)^{\alpha},$$
-        plus a defensive share $\rho = 1\%$ of the total spread evenly over
-        the axis, $d_i \leftarrow d_i + \rho\,\Delta_i \sum_k d_k$ ($\Delta_i$ the
+        plus a defensive share $\rho = \min(1\%, 0.64/N)$ of the total spread evenly
+        over the axis, $d_i \leftarrow d_i + \rho\,\Delta_i \sum_k d_k$ ($\Delta_i$ the
         bin's width in unit coordinates); the new edges then split the
         piecewise-uniform "mass" $d$ into $N$ equal parts, so bins shrink where
         $|f|$ is large. `alpha = 0` leaves the grid unchanged; larger `alpha`
@@ -189,6 +189,10 @@ class Grid(AbstractUnitMap):
         where $f \ne 0$: that sliver is then sampled so rarely that most
         rounds never see its huge $f/p$, and their error bars are too small
         (on Genz's discontinuous family in 4-D, 2-sigma coverage fell to 0.4).
+        Above 64 bins the share is the mass of 0.64 bins rather than 1%, so such a
+        region keeps the same share of a bin at any $N$: at 1024 bins, 1% held
+        ~10 bins away from where $f/p$ is large, and a grid refined on
+        $\prod_i x_i^{-1/3}$ in 6-D sampled it with 1.4x the variance.
 
         **Arguments:** `x` `(n, d)` (or `(n,)`) sample points; `weights` `(n,)`
         non-negative; `alpha` the damping exponent.
@@ -207,9 +211,16 @@ class Grid(AbstractUnitMap):
 
     def refine_bins(
         self, index: jax.Array, weights: jax.Array, *, alpha, counts=None, coarse_bins=None,
-        coarse=True,
+        coarse=True, point_weights=None,
     ) -> Grid:
-        """`refine` from the points' per-axis bin indices `(n, d)` (as `map_with_bins` returns them).
+        r"""`refine` from the points' per-axis bin indices `(n, d)` (as `map_with_bins` returns them).
+
+        With `point_weights` `(n,)` (each point's share of the unit cube, e.g. $v/n_h$ in a
+        stratified round), each bin's sum of `weights` is divided by its sum of
+        `point_weights`: a ratio estimate of the bin's mean of $(f/p)^2$, free of the noise
+        in how many points fell in it (as vegas's `sum_f / n_f`). On a fine grid with few
+        points per bin that noise dominates the sums: on $\prod_i x_i^{-1/3}$ in 6-D, 1024
+        bins refined on rounds of 8896 points, it left the map with 1.7x the variance.
 
         With `coarse_bins` (a static divisor $M$ of `bins` $N$) and `coarse` (may be
         traced), the rule runs on $M$ groups of $N/M$ adjacent bins each and splits every
@@ -220,11 +231,12 @@ class Grid(AbstractUnitMap):
         nb = self.bins
         # One scatter for all axes: axis j's bin i is slot j * N + i.
         flat = index + nb * jnp.arange(self.dim, dtype=index.dtype)
-        per_point = jnp.broadcast_to(weights[:, None], flat.shape)
-        sums = jax.ops.segment_sum(
-            jnp.reshape(per_point, (-1,)), jnp.reshape(flat, (-1,)), self.dim * nb
-        )
-        sums = jnp.reshape(sums, (self.dim, nb))
+        per_bin = lambda w: jnp.reshape(jax.ops.segment_sum(  # noqa: E731
+            jnp.reshape(jnp.broadcast_to(w[:, None], flat.shape), (-1,)),
+            jnp.reshape(flat, (-1,)), self.dim * nb), (self.dim, nb))
+        sums = per_bin(weights)
+        if point_weights is not None:
+            counts = per_bin(jnp.asarray(point_weights, weights.dtype))
         counts = None if counts is None else jnp.broadcast_to(counts, (self.dim, nb))
         new_logits = _refined_logits(sums, counts, self.logits, alpha, 1)
         group = 1 if coarse_bins is None else _group_size(nb, coarse_bins)
@@ -242,8 +254,8 @@ def _refined_logits(sums, counts, logits, alpha, group: int) -> jax.Array:
         sums = jnp.sum(grouped(sums), axis=-1)
         counts = None if counts is None else jnp.sum(grouped(counts), axis=-1)
         logits = jax.nn.logsumexp(grouped(logits), axis=-1)
-    if counts is not None:
-        sums = sums / jnp.maximum(counts, 1)
+    if counts is not None:  # (an empty bin's sum is 0: so is its mean)
+        sums = sums / jnp.where(counts > 0, counts, 1)
     new = jax.vmap(lambda s, lg: _vegas_rule(s, lg, alpha))(sums, logits)
     return new if group == 1 else jnp.repeat(new - jnp.log(group), group, axis=-1)
 
@@ -254,8 +266,11 @@ def _group_size(bins: int, coarse_bins: int) -> int:
     return bins // coarse_bins
 
 
-# The share of each refined axis's mass spread evenly over it (see `Grid.refine`).
+# The share of each refined axis's mass spread evenly over it (see `Grid.refine`): 1% at
+# up to 64 bins, and the mass of 0.64 bins above, so a region where f = 0 keeps the same
+# fraction of a bin at any resolution without holding 1% of a fine grid away from f.
 _DEFENSIVE_SHARE = 0.01
+_DEFENSIVE_BINS = 0.64
 
 
 def _vegas_rule(d: jax.Array, logits: jax.Array, alpha) -> jax.Array:
@@ -279,7 +294,8 @@ def _vegas_rule(d: jax.Array, logits: jax.Array, alpha) -> jax.Array:
     # Keep a floor so no bin collapses to zero width (and every region stays reachable),
     # and a defensive share spread evenly in x (see `Grid.refine`).
     damped = jnp.maximum(damped, 1e-8 * jnp.max(damped) + tiny)
-    damped = damped + _DEFENSIVE_SHARE * (w / jnp.sum(w)) * jnp.sum(damped)
+    share = min(_DEFENSIVE_SHARE, _DEFENSIVE_BINS / nb)
+    damped = damped + share * (w / jnp.sum(w)) * jnp.sum(damped)
     cum = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(damped)])
     targets = jnp.linspace(0.0, 1.0, nb + 1, dtype=w.dtype) * cum[-1]
     new = jnp.interp(targets, cum, old)
