@@ -183,7 +183,8 @@ class Pilot(eqx.Module):
 
     - `candidates`: the methods tried, in order.
     - `variance_per_evaluation`: each one's $m \\sigma^2_m$ (for an array-valued
-      integrand, summed over the components, relative to the squared mean).
+      integrand, summed over the components, relative to the squared mean; a grid that
+      follows a singularity credited for its refining, `credited_for_refining`).
     - `cost`: `variance_per_evaluation` times the relative time per evaluation.
     - `choice`: index of the winner in `candidates`.
     - `evaluations`: integrand evaluations the pilot spent, per candidate.
@@ -344,7 +345,8 @@ def split_keys(key):
 def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=False):
     """Run the candidates' pilots (`keys`: the pilot's four, `split_keys`); returns
     `(Pilot, trained VEGAS+ state or None, (seeded mixture, its pilot's points and values)
-    or None, evaluations left for the winner's stream)`.
+    or None, evaluations left for the winner's stream)`. `tolerant`: the stream stops at a
+    tolerance (then a grid streams frozen after refining, and is not credited for it).
 
     The grid trains in two stages, `SCREEN_ROUNDS` rounds and then the rest of the
     `rounds` rounds of `round_size` that `method="adaptive"` trains for: a young
