@@ -52,11 +52,12 @@ The candidates:
   in 6-D and (sum x)^-3/2 in 4-D: 2.5-3x lower actual error through the grid, error bars
   conservative and flagged; x^-1/2 in 2-D, infinite variance: 2x higher).
 - `"mixture"`: a Gaussian mixture seeded from the trained grid's last round (`_seeded_mixture`:
-  `GaussianMixture.from_samples` on the weights $|f|\,w/q$, EM towards the density $\propto
-  |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed with the grid itself at
+  `GaussianMixture.from_samples` on the weights $|f|\,w/q$, EM towards the density
+  $\propto |f|$, `MIXTURE_COMPONENTS` diagonal components), mixed with the grid itself at
   `DEFENSIVE_SHARE` (defensive importance sampling, Hesterberg 1995), measured on up to
-  `MIXTURE_PILOT_POINTS` points, each part drawing its share of them (`Mixture(...,
-  stratified=True)`: no point is drawn twice, once by each part, and then chosen between them).
+  `MIXTURE_PILOT_POINTS` points, each part drawing its share of them
+  (`Mixture(..., stratified=True)`: no point is drawn twice, once by each part, and then chosen
+  between them).
   A grid can lock onto one of several separated peaks, and the mixture seeded from it with it:
   before it is measured, an ascent of $\log|f|$ from the QMC pilot's best points
   (`_mode_search`, where JAX can differentiate $f$) finds the modes near them, and a mode where
