@@ -424,7 +424,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     )
     trained_n = (qmc_n, rounds * round_size, grid_qmc_n)
     if lo.size <= FINE_GRID_MAX_DIM and not tolerant and tail_refining(trained_rest, round_size)[0]:
-        v_grid = credited_for_refining(v_grid, coarse, qmc, grid_qmc)  # (a fine grid refines on)
+        v_grid = credited_for_refining(v_grid, ~coarse, qmc, grid_qmc)  # (`is_fine`: refines on)
     # No mixture measured so far has gone below MIXTURE_FLOOR: when another candidate already
     # costs less, or the grid follows a singularity, none is fitted (outside jit only).
     (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, grid_qmc,

@@ -119,9 +119,9 @@ TAIL_REFINING_GAIN = 4.0
 
 
 @jax.jit
-def credited_for_refining(v_grid, coarse, qmc: QMCFigures, grid_qmc: QMCFigures):
+def credited_for_refining(v_grid, fine, qmc: QMCFigures, grid_qmc: QMCFigures):
     r"""The trained grid's figure `v_grid`, divided by `TAIL_REFINING_GAIN` where it follows a
-    singularity: a fine grid (not `coarse`: QMC's values had a power-law tail) through which
+    singularity: a `fine` grid (`is_fine`: QMC's values had a power-law tail) through which
     $f/q$ keeps one (`grid_qmc.heavy`). The caller credits it only where the stream then
     refines finer (`tail_refining`: 4x the bins on 4x the rounds' points, no tolerance).
 
@@ -133,7 +133,7 @@ def credited_for_refining(v_grid, coarse, qmc: QMCFigures, grid_qmc: QMCFigures)
     took QMC on 3 keys of 80, which erred 4e-3, 10x the grid (credited, none: RMS error
     7.1e-4 -> 4.7e-4 on keys 20-79), $(\sum x)^{-3/2}$ on 7 keys of 40 (RMS error 5.6e-4
     against the grid's 2.4e-4; credited, 2, both QMC's early look, which this does not reach)."""
-    singular = ~coarse & grid_qmc.heavy & ~qmc.blind
+    singular = fine & grid_qmc.heavy & ~qmc.blind
     return jnp.where(singular, v_grid / TAIL_REFINING_GAIN, v_grid)
 
 

@@ -217,8 +217,8 @@ class Grid(AbstractUnitMap):
 
         With `point_weights` `(n,)` (each point's share of the unit cube, e.g. $v/n_h$ in a
         stratified round), each bin's sum of `weights` is divided by its sum of
-        `point_weights`: a ratio estimate of the bin's mean of $(f/p)^2$, free of the noise
-        in how many points fell in it (as vegas's `sum_f / n_f`). On a fine grid with few
+        `point_weights` (in place of `counts`): a ratio estimate of the bin's mean of
+        $(f/p)^2$, free of the noise in how many points fell in it (as vegas's `sum_f / n_f`). On a fine grid with few
         points per bin that noise dominates the sums: on $\prod_i x_i^{-1/3}$ in 6-D, 1024
         bins refined on rounds of 8896 points, it left the map with 1.7x the variance.
 
@@ -231,9 +231,12 @@ class Grid(AbstractUnitMap):
         nb = self.bins
         # One scatter for all axes: axis j's bin i is slot j * N + i.
         flat = index + nb * jnp.arange(self.dim, dtype=index.dtype)
-        per_bin = lambda w: jnp.reshape(jax.ops.segment_sum(  # noqa: E731
-            jnp.reshape(jnp.broadcast_to(w[:, None], flat.shape), (-1,)),
-            jnp.reshape(flat, (-1,)), self.dim * nb), (self.dim, nb))
+
+        def per_bin(w):  # (n,) -> (d, N): each axis's bins' sums of w
+            per_point = jnp.reshape(jnp.broadcast_to(w[:, None], flat.shape), (-1,))
+            sums = jax.ops.segment_sum(per_point, jnp.reshape(flat, (-1,)), self.dim * nb)
+            return jnp.reshape(sums, (self.dim, nb))
+
         sums = per_bin(weights)
         if point_weights is not None:
             counts = per_bin(jnp.asarray(point_weights, weights.dtype))
@@ -267,10 +270,10 @@ def _group_size(bins: int, coarse_bins: int) -> int:
 
 
 # The share of each refined axis's mass spread evenly over it (see `Grid.refine`): 1% at
-# up to 64 bins, and the mass of 0.64 bins above, so a region where f = 0 keeps the same
-# fraction of a bin at any resolution without holding 1% of a fine grid away from f.
+# up to 64 bins, and the same mass in bins (0.64) above, so a region where f = 0 keeps the
+# same fraction of a bin at any resolution without holding 1% of a fine grid away from f.
 _DEFENSIVE_SHARE = 0.01
-_DEFENSIVE_BINS = 0.64
+_DEFENSIVE_SHARE_BINS = 64
 
 
 def _vegas_rule(d: jax.Array, logits: jax.Array, alpha) -> jax.Array:
@@ -294,7 +297,7 @@ def _vegas_rule(d: jax.Array, logits: jax.Array, alpha) -> jax.Array:
     # Keep a floor so no bin collapses to zero width (and every region stays reachable),
     # and a defensive share spread evenly in x (see `Grid.refine`).
     damped = jnp.maximum(damped, 1e-8 * jnp.max(damped) + tiny)
-    share = min(_DEFENSIVE_SHARE, _DEFENSIVE_BINS / nb)
+    share = _DEFENSIVE_SHARE * min(1, _DEFENSIVE_SHARE_BINS / nb)
     damped = damped + share * (w / jnp.sum(w)) * jnp.sum(damped)
     cum = jnp.concatenate([jnp.zeros((1,), w.dtype), jnp.cumsum(damped)])
     targets = jnp.linspace(0.0, 1.0, nb + 1, dtype=w.dtype) * cum[-1]
