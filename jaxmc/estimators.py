@@ -11,7 +11,6 @@
 | `integrate` | streaming driver with tolerances, chunks and devices; `method="auto"` picks by a pilot (`IntegrationEstimate`, `Pilot`) |
 """
 
-from ._estimators._auto import Pilot as Pilot
 from ._estimators._basic import importance as importance, uniform as uniform
 from ._estimators._control import antithetic as antithetic, control_variate as control_variate
 from ._estimators._integrate import (
@@ -19,6 +18,7 @@ from ._estimators._integrate import (
     integrate as integrate,
 )
 from ._estimators._mis import mis as mis, mis_one_sample as mis_one_sample
+from ._estimators._pilot_record import Pilot as Pilot
 from ._estimators._qmc import QMCEstimate as QMCEstimate, randomized_qmc as randomized_qmc
 from ._estimators._stratified import stratified as stratified
 

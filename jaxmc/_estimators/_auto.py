@@ -112,10 +112,8 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._checks import is_concrete
-from .._format import concrete, number
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, tail_refining, uniform_grid
 from ._held_out import held_out_drops_grid
 from ._mode_search import search_evaluations
@@ -125,6 +123,7 @@ from ._pilot_grid import (
     grid_rounds,
     round_figures,
     run_rounds,
+    staged_grid_rounds,
     tail_through_grid,
 )
 from ._pilot_mixture import follows_a_singularity, mixture_outlook, mixture_pilot
@@ -139,6 +138,7 @@ from ._pilot_nets import (
     pilot_qmc_points,
     whole_nets_figures,
 )
+from ._pilot_record import Pilot
 from ._plan import QMC_REPLICAS, final_net
 
 
@@ -175,42 +175,6 @@ MIXTURE_HOPELESS = 4.0
 # 3.7e-4 -> 4.1e-4); the 10-D ball, the 3-D ball, the annulus, the 8-D half-space and
 # Genz's 8-D continuous and discontinuous chose as before.
 SCREEN_MARGIN = 2.0
-
-
-class Pilot(eqx.Module):
-    """What the pilot of `integrate(method="auto")` measured.
-
-    **Fields:**
-
-    - `candidates`: the methods tried, in order.
-    - `variance_per_evaluation`: each one's $m \\sigma^2_m$ (for an array-valued
-      integrand, summed over the components, relative to the squared mean; a grid that
-      follows a singularity credited for its refining, `credited_for_refining`).
-    - `cost`: `variance_per_evaluation` times the relative time per evaluation.
-    - `choice`: index of the winner in `candidates`.
-    - `evaluations`: integrand evaluations the pilot spent, per candidate.
-    """
-
-    candidates: tuple[str, ...] = eqx.field(static=True)
-    variance_per_evaluation: jax.Array
-    cost: jax.Array
-    choice: jax.Array
-    evaluations: tuple[int, ...] = eqx.field(static=True)
-
-    def __repr__(self) -> str:
-        """`Pilot(choice='adaptive', qmc=(variance 2.63, cost 2.63, 5120 evaluations), ...)`:
-        each candidate's figures (`inf`: blind, unfitted, too loose a fit to compete, values
-        with a power-law tail through the grid, or a grid that misses a mode the mixture holds);
-        equinox's repr (shapes and dtypes) when traced, or batched under `vmap`."""
-        if not concrete(self) or jnp.ndim(self.choice) != 0:
-            return eqx.Module.__repr__(self)
-        figures = [
-            f"{name}=(variance {number(v)}, cost {number(c)}, {m} evaluations)"
-            for name, v, c, m in zip(self.candidates, np.asarray(self.variance_per_evaluation),
-                                     np.asarray(self.cost), self.evaluations)
-        ]
-        chosen = self.candidates[int(self.choice)]
-        return f"Pilot(choice={chosen!r}, {', '.join(figures)})"
 
 
 def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
@@ -350,7 +314,8 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     tolerance (then a grid streams frozen after refining, and is not credited for it).
 
     The grid trains in two stages, `SCREEN_ROUNDS` rounds and then the rest of the
-    `rounds` rounds of `round_size` that `method="adaptive"` trains for: a young
+    `rounds` rounds of `round_size` that `method="adaptive"` trains for (all in one where
+    QMC's values have a power-law tail, which the screen never drops): a young
     grid's variance says little of the trained one's (measured after 3 and 10
     rounds: from 10x worse, on a 16-D discontinuity, to 1000x better, on a 5-D
     posterior), so the choice is made on the trained grid unless the young one,
@@ -401,17 +366,25 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     bins = fine_grid_bins if lo.size <= FINE_GRID_MAX_DIM else grid_bins
     coarse, grid = ~qmc.heavy, uniform_grid(lo, hi, bins=bins(round_size))
     settings = dict(f=f, rounds=rounds, round_size=round_size, batched=batched)
-    parts, state, samples = run_rounds(key_screen, grid, jnp.int32(screen), coarse, **settings)
-    (v_grid, grid_blind), screened, screened_two, decided = _screen(
-        qmc, parts, samples, jnp.int32(screen), rounds=rounds, round_size=round_size)
-    if is_concrete(decided) and bool(decided):
-        variance, cost, choice = screened_two
-        pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
-        return pilot, state, None, screened_rest
+    if rounds > screen and is_concrete(qmc.heavy) and bool(qmc.heavy):
+        # The screen never drops a grid under a power-law tail: both stages in one program,
+        # the same rounds (at 1e5, ~0.8 ms of a run less).
+        unread = jnp.full((len(CANDIDATES),), jnp.inf, qmc.variance.dtype)
+        screened, decided = (unread, unread, jnp.asarray(0, jnp.int32)), jnp.asarray(False)
+        v_grid, grid_blind, grid_tail, state, samples = staged_grid_rounds(
+            (key_screen, key_train), grid, screen, coarse, **settings)
+    else:
+        parts, state, samples = run_rounds(key_screen, grid, jnp.int32(screen), coarse, **settings)
+        (v_grid, grid_blind), screened, screened_two, decided = _screen(
+            qmc, parts, samples, jnp.int32(screen), rounds=rounds, round_size=round_size)
+        if is_concrete(decided) and bool(decided):
+            variance, cost, choice = screened_two
+            pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
+            return pilot, state, None, screened_rest
+        if rounds > screen:
+            v_grid, grid_blind, grid_tail, state, samples = grid_rounds(
+                key_train, state.grid, jnp.int32(rounds - screen), coarse, **settings)
     if rounds > screen:
-        v_grid, grid_blind, grid_tail, state, samples = grid_rounds(
-            key_train, state.grid, jnp.int32(rounds - screen), coarse, **settings
-        )
         qmc = tail_through_grid(qmc, grid_tail)  # (a tail its nets missed)
     # The search for modes the mixture missed is budgeted whether or not it runs (it needs
     # the integrand's gradients; as a shortcut's, its evaluations are then left unspent).

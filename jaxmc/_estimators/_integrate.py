@@ -34,7 +34,8 @@ from .._format import concrete
 from .._integrand import bind
 from .._stats import Estimate, ReliabilityWarning, estimate_fields
 from ._adaptive import adaptive_block, is_fine, training_rounds
-from ._auto import Pilot, run_pilot, split_keys
+from ._auto import run_pilot, split_keys
+from ._pilot_record import Pilot
 from ._plan import PROBE_BUDGET, PROBE_REACH, QMC_REPLICAS
 from ._runner import Runner
 from ._tolerance import check_tolerance, unmet_tolerance

@@ -53,6 +53,16 @@ def grid_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batch
 
 
 @eqx.filter_jit
+def staged_grid_rounds(keys, grid, first, coarse=False, *, f, rounds, round_size, batched):
+    """`grid_rounds` in two stages, as `auto`'s pilot trains: the first `first` rounds from
+    `grid` on `keys[0]`, then the rest from the grid they trained (its allocation anew) on
+    `keys[1]`; one compiled program, for where nothing is decided between the stages."""
+    settings = dict(f=f, rounds=rounds, round_size=round_size, batched=batched)
+    _, state, _ = run_rounds(keys[0], grid, jnp.int32(first), coarse, **settings)
+    return grid_rounds(keys[1], state.grid, jnp.int32(rounds - first), coarse, **settings)
+
+
+@eqx.filter_jit
 def run_rounds(key, grid, active, coarse=False, *, f, rounds, round_size, batched):
     """The first `active` of `rounds` VEGAS+ rounds from `grid` (`run_adaptation`, the rest
     skipped, so one compiled program serves the screening and the training stage: ~1.5 s
