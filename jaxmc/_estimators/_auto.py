@@ -112,6 +112,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import is_concrete
 from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, tail_refining, uniform_grid
@@ -369,8 +370,9 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     if rounds > screen and is_concrete(qmc.heavy) and bool(qmc.heavy):
         # The screen never drops a grid under a power-law tail: both stages in one program,
         # the same rounds (at 1e5, ~0.8 ms of a run less).
-        unread = jnp.full((len(CANDIDATES),), jnp.inf, qmc.variance.dtype)
-        screened, decided = (unread, unread, jnp.asarray(0, jnp.int32)), jnp.asarray(False)
+        # (NumPy placeholders for the screen's figures, traced as its arrays were: no dispatch.)
+        unread = np.full((len(CANDIDATES),), np.inf, qmc.variance.dtype)
+        screened, decided = (unread, unread, np.asarray(0, np.int32)), np.asarray(False)
         v_grid, grid_blind, grid_tail, state, samples = staged_grid_rounds(
             (key_screen, key_train), grid, screen, coarse, **settings)
     else:
