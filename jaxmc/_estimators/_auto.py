@@ -91,6 +91,10 @@ The candidates:
   weights where the fitted ones fall faster than $f$ (`_with_wide_gaussian`). What is left
   streams from it (`method="importance"` blocks of `_stream`), to the budget or the tolerance.
 
+- `"ridge_qmc"`: QMC's nets through a density along one direction, for a ridge function
+  $g(w \cdot x)$ (a resonance off the axes), which neither a product of axis densities nor
+  QMC's nets follow: measured where QMC won, not clearly (`_pilot_ridge`).
+
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock readings, so
 `"auto"` is deterministic in `(key, n)`: the grid's map, its training and the stratified
 allocation make a VEGAS+ evaluation of a cheap integrand 4-7x dearer than a Sobol' point on a
@@ -140,6 +144,7 @@ from ._pilot_nets import (
     whole_nets_figures,
 )
 from ._pilot_record import Pilot
+from ._pilot_ridge import ridge_probe, with_ridge_candidate, worth_probing
 from ._plan import QMC_REPLICAS, final_net
 
 
@@ -188,7 +193,8 @@ def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
 def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured: `(their
     values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar or the grid's
-    outlook on them drops it (`outlook_drops_grid`, `held_out_drops_grid`), its lone `Pilot`)`."""
+    outlook on them drops it (`outlook_drops_grid`, `held_out_drops_grid`), its lone `Pilot`,
+    whether it is a clear win)`."""
     quarter = per_replica // 4
     y, bins = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1, True)
     return (y, bins) + _early_verdict(bins, y, growth=growth,
@@ -201,7 +207,7 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
 def _early_verdict(bins, y, *, growth, bar):
     qmc = early_look_figures(bins, y, growth, bar)
     stop = qmc.clear_win | outlook_drops_grid(qmc, *_OUTLOOK_COSTS) | held_out_drops_grid(qmc, bins, y)
-    return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS)
+    return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS), qmc.clear_win
 
 
 def _qmc_pilot(key, lo, hi, early, early_stop, *, f, per_replica, growth, batched):
@@ -337,12 +343,39 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     is trained at all; where the nets' first quarter shows `EARLY_MARGIN` times that gain, or
     drops the grid so, the rest of them go unevaluated (shortcuts are taken outside `jit` only).
 
+    A ridge function's density (`"ridge_qmc"`, `_pilot_ridge`) joins the candidates at the
+    end; where it wins, the second slot holds the `RidgeMap` it streams through.
+
     The stream's budget depends only on how far the pilot went, QMC's early look,
     screening or training, not on whether a shortcut then skipped the grid or the mixture
     (their points are left unspent): the stream's sizes are static, so every
     budget it takes is one more compiled program (~1-2 s, against 0.01-0.1 s
     a run at 1e5-1e6), and keys that take different shortcuts share the winner's.
     """
+    per_replica = pilot_qmc_points(budget)
+    # The first quarter of the nets may already decide for QMC: the rest of the pilot's
+    # points then go to the stream (at 1e5, 3 nets of 2^15 instead of 5 of 2^14).
+    early_rest = budget - per_replica * QMC_REPLICAS // 4
+    early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
+    look = _qmc_early_look(keys[0], lo, hi, f=f, per_replica=per_replica, growth=early_growth,
+                           batched=batched)
+    early, _, early_stop, alone, early_win = look
+    probe = (ridge_probe(keys[0], f, lo, hi, early, batched=batched, per_replica=per_replica)
+             if worth_probing(alone.variance_per_evaluation[0], early_win) else None)
+    result = (alone, None, None, early_rest) if is_concrete(early_stop) and bool(early_stop) \
+        else _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size,
+                                     tolerant, look)
+    if probe is None:
+        return result
+    return with_ridge_candidate(result, keys[0], f, lo, hi, probe, batched=batched,
+                                budget=budget, per_replica=per_replica)
+
+
+def _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant,
+                            look):
+    """`run_pilot` on from QMC's early look where it did not choose QMC (`look`, its
+    results, `_qmc_early_look`)."""
+    early, early_bins, early_stop, alone, _ = look
     per_replica = pilot_qmc_points(budget)
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_screen, key_train, key_mixture = keys
@@ -351,14 +384,6 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     # In one dimension a grid is any piecewise-constant density: a mixture adds nothing.
     mixture_n = 0 if lo.size == 1 else min(round_size, MIXTURE_PILOT_POINTS)
     growth = min(final_net(screened_rest) / per_replica, MAX_NET_GROWTH)
-    # The first quarter of the nets may already decide for QMC: the rest of the pilot's
-    # points then go to the stream (at 1e5, 3 nets of 2^15 instead of 5 of 2^14).
-    early_rest = budget - qmc_n // 4
-    early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
-    early, early_bins, early_stop, alone = _qmc_early_look(
-        key_qmc, lo, hi, f=f, per_replica=per_replica, growth=early_growth, batched=batched)
-    if is_concrete(early_stop) and bool(early_stop):
-        return alone, None, None, early_rest
     qmc, alone, unpromising = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_stop, f=f,
                                          per_replica=per_replica, growth=growth, batched=batched)
     if is_concrete(qmc.clear_win) and (bool(qmc.clear_win) or bool(unpromising)):

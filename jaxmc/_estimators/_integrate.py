@@ -102,7 +102,8 @@ def integrate(
       costlier than QMC, a mixture that could not win) and the stream gets
       the evaluations left; under `jit` every stage runs, so the budget can
       split differently (both estimates unbiased; where the eager pilot
-      skipped nothing they agree).
+      skipped nothing they agree). The ridge density (`"ridge_qmc"`, below)
+      is sought eagerly only.
     - `f`: the integrand, written for one point (or batched with `batched=True`).
     - `lo`, `hi`: the box (scalars or shape `(d,)`).
     - `rtol`, `atol`: tolerances on the standard error; give either or both,
@@ -122,7 +123,14 @@ def integrate(
           found (where JAX can differentiate `f`; `est.method` `"mixture"`,
           refitted to its own points when it wins, then streamed as
           importance sampling) — and spends the rest on the cheapest per
-          unit of variance (see `jaxmc/_estimators/_auto.py` for the rules);
+          unit of variance (see `jaxmc/_estimators/_auto.py` for the rules).
+          Where QMC won no clear win and `f`'s gradients at QMC's largest
+          values are all parallel, to some $w$, and `f` keeps its value a step
+          across $w$ (a ridge function $g(w \cdot x)$: a resonance off the
+          axes), it also measures QMC's nets through a density along $w$
+          (`est.method` `"ridge_qmc"`: one coordinate drawn given the others
+          from the profile $|g|$, read along the cube's diagonal, so that the
+          integral over that coordinate is done nearly exactly; eagerly only);
           `est.method` names the winner and `est.pilot` keeps the figures.
           The pilot's evaluations count in `n` but not in the mean, which
           stays unbiased.
@@ -277,18 +285,21 @@ def integrate(
         pilot, state, mixture, rest, sized_rest, block, spent = _sized_pilot(
             pilot_keys, f, lo, hi, budget, batched, probe_rtol, tolerant
         )
-        branches = (
-            lambda: run.qmc(key, rest, spent),
+        streams = dict(
+            qmc=lambda: run.qmc(key, rest, spent),
             # The pilot trained the grid in full: refine and stream on it.
             # A fine grid (a power-law tail) refines finer (`tail_refining`).
-            lambda: run.trained_grid(key, rest, state, block, spent,
-                                     tail=is_fine(state, lo.size)),
+            adaptive=lambda: run.trained_grid(key, rest, state, block, spent,
+                                              tail=is_fine(state, lo.size)),
             # Scrambled Sobol' nets through the trained grid's map.
-            lambda: run.qmc(key, rest, spent, grid=state.grid),
+            grid_qmc=lambda: run.qmc(key, rest, spent, grid=state.grid),
             # Importance sampling from the mixture the pilot seeded from the grid (refitted
             # on a tenth of what the budget that sized the pilot left).
-            lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk, sized_rest),
-        )[: len(pilot.candidates)]
+            mixture=lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk, sized_rest),
+            # Scrambled Sobol' nets through the pilot's ridge density (`state`: its map).
+            ridge_qmc=lambda: run.qmc(key, rest, spent, grid=state),
+        )
+        branches = [streams[name] for name in pilot.candidates]
         if is_concrete(pilot.choice):
             method = pilot.candidates[int(pilot.choice)]
             est = branches[int(pilot.choice)]()

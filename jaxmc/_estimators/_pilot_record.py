@@ -21,7 +21,8 @@ class Pilot(eqx.Module):
       follows a singularity credited for its refining, `credited_for_refining`).
     - `cost`: `variance_per_evaluation` times the relative time per evaluation.
     - `choice`: index of the winner in `candidates`.
-    - `evaluations`: integrand evaluations the pilot spent, per candidate.
+    - `evaluations`: integrand evaluations the pilot spent, per candidate (QMC's with those
+      of a search for a ridge at its points that found none, `_pilot_ridge`).
     """
 
     candidates: tuple[str, ...] = eqx.field(static=True)
