@@ -144,7 +144,7 @@ from ._pilot_nets import (
     whole_nets_figures,
 )
 from ._pilot_record import Pilot
-from ._pilot_ridge import ridge_probe, with_ridge_candidate, worth_probing
+from ._pilot_ridge import ridge_probe, room_for_a_ridge, with_ridge_candidate
 from ._plan import QMC_REPLICAS, final_net
 
 
@@ -194,7 +194,7 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured: `(their
     values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar or the grid's
     outlook on them drops it (`outlook_drops_grid`, `held_out_drops_grid`), its lone `Pilot`,
-    whether it is a clear win)`."""
+    whether it leaves room for a ridge, `room_for_a_ridge`)`."""
     quarter = per_replica // 4
     y, bins = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1, True)
     return (y, bins) + _early_verdict(bins, y, growth=growth,
@@ -207,7 +207,8 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
 def _early_verdict(bins, y, *, growth, bar):
     qmc = early_look_figures(bins, y, growth, bar)
     stop = qmc.clear_win | outlook_drops_grid(qmc, *_OUTLOOK_COSTS) | held_out_drops_grid(qmc, bins, y)
-    return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS), qmc.clear_win
+    return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS), room_for_a_ridge(qmc.variance,
+                                                                         qmc.clear_win)
 
 
 def _qmc_pilot(key, lo, hi, early, early_stop, *, f, per_replica, growth, batched):
@@ -359,9 +360,9 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
     look = _qmc_early_look(keys[0], lo, hi, f=f, per_replica=per_replica, growth=early_growth,
                            batched=batched)
-    early, _, early_stop, alone, early_win = look
+    early, _, early_stop, alone, room = look
     probe = (ridge_probe(keys[0], f, lo, hi, early, batched=batched, per_replica=per_replica)
-             if worth_probing(alone.variance_per_evaluation[0], early_win) else None)
+             if is_concrete(room) and bool(room) else None)
     result = (alone, None, None, early_rest) if is_concrete(early_stop) and bool(early_stop) \
         else _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size,
                                      tolerant, look)

@@ -35,7 +35,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import is_concrete
 from .._integrand import evaluate
 from ._plan import QMC_REPLICAS
 
@@ -207,9 +206,7 @@ def profiled_ridge(lo, hi, direction, axis, *, f, batched, steps):
     return RidgeMap(lo, hi, w, s_lo, (s_hi - s_lo) / steps, levels, guide, axis)
 
 
-def worth_probing(cost, clear_win=False) -> bool:
-    """Whether a pilot's figures leave room for a ridge (outside `jit` only): no clear win
-    for QMC, and a `cost` (QMC's, or the winner's) of at least `RIDGE_MIN_COST`."""
-    if not (is_concrete(cost) and is_concrete(clear_win)):
-        return False
-    return bool(cost >= RIDGE_MIN_COST) and not bool(clear_win)
+def room_for_a_ridge(cost, clear_win=False) -> jax.Array:
+    """Whether a pilot's figures leave room for a ridge: no clear win for QMC, and a `cost`
+    (QMC's, or the winner's) of at least `RIDGE_MIN_COST`."""
+    return (cost >= RIDGE_MIN_COST) & ~jnp.asarray(clear_win)
