@@ -82,7 +82,8 @@ def test_the_gradients_find_a_ridge_and_only_a_ridge():
     x = jax.random.uniform(jax.random.key(3), (256, 3), jnp.float64)
 
     def direction(f):
-        w, ridge = ridge_direction(f, False, lo, hi, x, jnp.abs(jax.vmap(f)(x)))
+        w, ridge, axis = ridge_direction(f, False, lo, hi, x, jnp.abs(jax.vmap(f)(x)))
+        assert int(axis) == int(np.argmax(np.abs(np.asarray(w))))
         return np.asarray(w), bool(ridge)
 
     w, ridge = direction(resonance)

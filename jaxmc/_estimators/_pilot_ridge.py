@@ -18,13 +18,9 @@ each, 1.0e-4 and 4.8e-4.
 """
 from __future__ import annotations
 
-from functools import partial
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from .._checks import is_concrete
 from ._pilot_grid import grid_qmc_pilot
 from ._pilot_nets import MAX_NET_GROWTH, net_points
 from ._pilot_record import Pilot
@@ -51,15 +47,15 @@ def ridge_probe(key, f, lo, hi, early, *, batched, per_replica):
     where JAX cannot differentiate $f$."""
     if lo.ndim == 0 or lo.shape[0] < 2:
         return 0, None
-    quarter = per_replica // 4
-    points = _early_points(key, lo, hi, log2_size=quarter.bit_length() - 1)
+    log2_size = (per_replica // 4).bit_length() - 1
+    # (The early look's points, made anew in the probe's own program.)
+    points = jax.tree_util.Partial(net_points, key, lo, hi, 0, 1, log2_size)
     try:
-        direction, ridge = ridge_direction(f, batched, lo, hi, points, early)
+        direction, ridge, axis = ridge_direction(f, batched, lo, hi, points, early)
     except Exception:  # noqa: BLE001 (any failure to differentiate means: no ridge)
         return 0, None
-    if not (is_concrete(ridge) and bool(ridge)):
-        return PROBE_EVALUATIONS, None
-    return PROBE_EVALUATIONS, (direction, int(np.argmax(np.abs(np.asarray(direction)))))
+    ridge, axis = jax.device_get((ridge, axis))  # (one read)
+    return PROBE_EVALUATIONS, ((direction, int(axis)) if ridge else None)
 
 
 def with_ridge_candidate(result, key, f, lo, hi, probe, *, batched, budget, per_replica):
@@ -95,14 +91,10 @@ def with_ridge_candidate(result, key, f, lo, hi, probe, *, batched, budget, per_
     return pilot, state, mixture, rest - spent
 
 
-@partial(jax.jit, static_argnames="log2_size")
-def _early_points(key, lo, hi, *, log2_size):
-    """The points of QMC's early look (`_qmc_early_look`), anew."""
-    return net_points(key, lo, hi, 0, 1, log2_size)
-
-
 @jax.jit
 def _appended(variance, cost, choice, v_ridge, ridge_blind):
+    """The pilot's figures with the ridge's appended, and the choice: the ridge where it costs
+    less than the winner."""
     v_ridge = jnp.where(ridge_blind, jnp.inf, v_ridge.astype(variance.dtype))
     ridge_cost = RIDGE_COST * v_ridge
     wins = ridge_cost < cost[choice]

@@ -123,8 +123,9 @@ class RidgeMap(eqx.Module):
 
 @eqx.filter_jit
 def ridge_direction(f, batched, lo, hi, points, values):
-    """`(w, whether f looks like a ridge function along it)` from the gradients of $f$ at
-    the `RIDGE_PROBES` of `points` `(..., d)` (in the box) with the largest `values`:
+    """`(w, whether f looks like a ridge function along it, w's largest component's axis)`
+    from the gradients of $f$ at the `RIDGE_PROBES` of `points` `(..., d)` (in the box, or a
+    function of no arguments that makes them) with the largest `values`:
     $w$ the leading eigenvector of the sum of the unit gradients' outer products (on the unit
     cube's coordinates); a ridge where the second eigenvalue is below `RIDGE_RANK` times it,
     at least two gradients were finite and nonzero, and $f$ keeps its value, within
@@ -132,7 +133,7 @@ def ridge_direction(f, batched, lo, hi, points, values):
     half the way to the box's edge: Genz's discontinuous integrand has parallel gradients
     where it is not zero, and its edges cut across them)."""
     width = hi - lo
-    x = jnp.reshape(points, (-1, lo.shape[0]))
+    x = jnp.reshape(points() if callable(points) else points, (-1, lo.shape[0]))
     magnitude = jnp.sum(jnp.reshape(jnp.abs(values), (x.shape[0], -1)), axis=1)
     probes = x[jnp.argsort(-magnitude)[:RIDGE_PROBES]]
 
@@ -160,7 +161,7 @@ def ridge_direction(f, batched, lo, hi, points, values):
     flat = jnp.abs(moved - values_at) <= RIDGE_FLAT * jnp.abs(values_at)
     ridge = (jnp.sum(usable) >= 2) & (eigenvalues[-2] <= RIDGE_RANK * eigenvalues[-1]) \
         & jnp.all(flat | ~usable[:, 0])
-    return w, ridge
+    return w, ridge, jnp.argmax(jnp.abs(w))
 
 
 def ridge_table_size(budget: int) -> int:
