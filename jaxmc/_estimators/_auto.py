@@ -144,13 +144,14 @@ from ._pilot_nets import (
     whole_nets_figures,
 )
 from ._pilot_record import Pilot
-from ._pilot_ridge import ridge_probe, room_for_a_ridge, with_ridge_candidate
+from ._pilot_ridge import RIDGE_COST, ridge_probe, room_for_a_ridge, with_ridge_candidate
 from ._plan import QMC_REPLICAS, final_net
 
 
 CANDIDATES = ("qmc", "adaptive", "grid_qmc", "mixture")
 # Time per evaluation, relative to a Sobol' point.
-RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "grid_qmc": 2.0, "mixture": 12.0}
+RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "grid_qmc": 2.0, "mixture": 12.0,
+                 "ridge_qmc": RIDGE_COST}
 MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
 # The lowest relative variance per evaluation expected of a mixture seeded from the
 # grid: measured 0.02-0.07 on vegas's and i-flow's Gaussians and camels at 1e5.
@@ -365,7 +366,7 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
              if is_concrete(room) and bool(room) else None)
     result = (alone, None, None, early_rest) if is_concrete(early_stop) and bool(early_stop) \
         else _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size,
-                                     tolerant, look)
+                                     tolerant, look, per_replica)
     if probe is None:
         return result
     return with_ridge_candidate(result, keys[0], f, lo, hi, probe, batched=batched,
@@ -373,11 +374,10 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
 
 
 def _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant,
-                            look):
+                            look, per_replica):
     """`run_pilot` on from QMC's early look where it did not choose QMC (`look`, its
-    results, `_qmc_early_look`)."""
+    results, `_qmc_early_look`, on nets of `per_replica` points)."""
     early, early_bins, early_stop, alone, _ = look
-    per_replica = pilot_qmc_points(budget)
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_screen, key_train, key_mixture = keys
     screen = min(SCREEN_ROUNDS, rounds)

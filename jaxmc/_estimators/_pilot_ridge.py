@@ -36,9 +36,11 @@ from ._ridge import (
 )
 
 
-__all__ = ["RIDGE_MIN_COST", "ridge_probe", "room_for_a_ridge", "with_ridge_candidate"]
+__all__ = ["RIDGE_COST", "RIDGE_MIN_COST", "ridge_probe", "room_for_a_ridge",
+           "with_ridge_candidate"]
 
-RIDGE_COST = 2.0  # time per evaluation relative to a Sobol' point's (as QMC through a grid)
+# Time per evaluation relative to a Sobol' point's, as QMC through a grid (`_auto.RELATIVE_COST`).
+RIDGE_COST = 2.0
 
 
 def ridge_probe(key, f, lo, hi, early, *, batched, per_replica):

@@ -51,8 +51,8 @@ RIDGE_DEFENSIVE = 0.05  # the share of h spread evenly over the range of s
 # ridge functions of the `auto` suite a ridge did not serve (Genz's corner peaks, (sum
 # x)^-3/2, 4 keys at 1e5 and 3 at 1e6), 5-30 on the oblique resonances.
 RIDGE_MIN_COST = 0.5
-# (`jnp.searchsorted`'s unrolled binary search: 2x faster than its default on the CPU,
-# 40-60x faster than sorting or comparing all, 257 edges and 32,768 values.)
+# (`jnp.searchsorted`'s unrolled binary search, for the guide table, built once a profile:
+# 2x faster than its default on the CPU, 40-60x faster than sorting or comparing all.)
 _SEARCH = "scan_unrolled"
 _GUIDE, _GUIDED_SEARCH = 8, 3  # (5 halvings with one guide level a step: 1.6x the time)
 
