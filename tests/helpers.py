@@ -97,6 +97,23 @@ def assert_unbiased_and_honest(est, exact, *, honest="equal"):
 _compiled_importance = eqx.filter_jit(jaxmc.importance)
 
 
+def auto_against(f, exact, lo, hi, n, chosen, other, keys=range(4)):
+    """`integrate`'s default against `method=other` on the same keys: asserts that each
+    default run chose `chosen` and is within 5 of its standard errors; returns both RMS
+    errors, and the default runs."""
+    errors, runs = {"auto": [], other: []}, []
+    for k in keys:
+        key = jax.random.key(k)
+        est = jaxmc.integrate(key, f, lo, hi, n=n)
+        assert est.method == chosen, est.pilot
+        assert abs(float(est.mean) - exact) < 5 * float(est.stderr), (k, est)
+        errors["auto"].append(float(est.mean) - exact)
+        runs.append(est)
+        alone = jaxmc.integrate(key, f, lo, hi, n=n, method=other)
+        errors[other].append(float(alone.mean) - exact)
+    return {m: np.sqrt(np.mean(np.square(e))) for m, e in errors.items()}, runs
+
+
 def importance(key, f, proposal, n):
     """`jaxmc.importance` as one compiled program (eagerly, its sampler dispatches op by op),
     with the `ReliabilityWarning` it gives outside `jit` (the suite turns it into an error)."""

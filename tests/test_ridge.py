@@ -9,7 +9,7 @@ from scipy.integrate import dblquad
 import jaxmc
 from jaxmc._estimators._ridge import RIDGE_DEFENSIVE, profiled_ridge, ridge_direction
 
-from .helpers import box
+from .helpers import auto_against, box
 
 
 # A Breit-Wigner resonance in s = w . x, off the axes (as the `auto` benchmark's).
@@ -101,20 +101,11 @@ def test_the_gradients_find_a_ridge_and_only_a_ridge():
 
 def test_auto_takes_the_ridge_on_an_oblique_resonance(resonance_exact):
     # 30-90x less error than QMC alone, on the same budget, with an honest error bar.
-    lo, hi = box(3)
     n = 2**17
-    errors = {"auto": [], "qmc": []}
-    for k in range(4):
-        key = jax.random.key(k)
-        est = jaxmc.integrate(key, resonance, lo, hi, n=n)
-        assert est.method == "ridge_qmc", est.pilot
+    rms, runs = auto_against(resonance, resonance_exact, *box(3), n, "ridge_qmc", "qmc")
+    for est in runs:
         assert est.pilot.candidates[-1] == "ridge_qmc"
-        assert abs(float(est.mean) - resonance_exact) < 5 * float(est.stderr)
         assert int(est.n) <= n and sum(est.pilot.evaluations) < n / 8
-        errors["auto"].append(float(est.mean) - resonance_exact)
-        alone = jaxmc.integrate(key, resonance, lo, hi, n=n, method="qmc")
-        errors["qmc"].append(float(alone.mean) - resonance_exact)
-    rms = {m: np.sqrt(np.mean(np.square(e))) for m, e in errors.items()}
     assert rms["auto"] < rms["qmc"] / 10, rms
 
 

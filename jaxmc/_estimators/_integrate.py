@@ -117,7 +117,9 @@ def integrate(
           one-dimensional factors, which a grid fits exactly, only by a far
           wider margin, on the nets' first quarter), the VEGAS+ grid of `"adaptive"` as
           it trains (at most a quarter), QMC's nets carried through the
-          trained grid's map (`est.method` `"grid_qmc"`) and a mixture of
+          trained grid's map (`est.method` `"grid_qmc"`; where `f` is singular
+          on a face of the box, as $x^{-1/2}$, its bins there follow the
+          singularity's power, so that $f/q$ stays bounded) and a mixture of
           Gaussians seeded from the trained grid, with one more at each mode
           the grid missed that an ascent of $\log|f|$ from QMC's best points
           found (where JAX can differentiate `f`; `est.method` `"mixture"`,
@@ -291,8 +293,9 @@ def integrate(
             # A fine grid (a power-law tail) refines finer (`tail_refining`).
             adaptive=lambda: run.trained_grid(key, rest, state, block, spent,
                                               tail=is_fine(state, lo.size)),
-            # Scrambled Sobol' nets through the trained grid's map.
-            grid_qmc=lambda: run.qmc(key, rest, spent, grid=state.grid),
+            # Scrambled Sobol' nets through the trained grid's map (bent where it follows a
+            # singularity at a face, as the pilot measured it).
+            grid_qmc=lambda: run.grid_qmc(key, rest, spent, state.grid),
             # Importance sampling from the mixture the pilot seeded from the grid (refitted
             # on a tenth of what the budget that sized the pilot left).
             mixture=lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk, sized_rest),

@@ -68,10 +68,10 @@ class Plan(eqx.Module):
     replicas: int = eqx.field(static=True)  # randomised-QMC replicas (1 otherwise)
 
 
-def final_net(budget: int) -> int:
+def final_net(budget: int, min_replicas: int = QMC_MIN_REPLICAS) -> int:
     """Points per replica of randomised QMC on a fixed budget: the largest power of two
-    that `QMC_MIN_REPLICAS` replicas fit in (the rest of the budget buys more replicas)."""
-    return 1 << int(math.floor(math.log2(max(budget // QMC_MIN_REPLICAS, 1))))
+    that `min_replicas` replicas fit in (the rest of the budget buys more replicas)."""
+    return 1 << int(math.floor(math.log2(max(budget // min_replicas, 1))))
 
 
 def plan(
@@ -82,12 +82,13 @@ def plan(
     d: int,
     adaptive_block: int = 0,
     tolerant: bool = False,
+    min_replicas: int = QMC_MIN_REPLICAS,
 ) -> Plan:
     """The block size, block count and loop shape for `budget` evaluations.
 
     Randomised QMC with a fixed budget gives each replica the largest power of
-    two of points that `QMC_MIN_REPLICAS` replicas fit in (whole nets, where its
-    error is smallest) and spends what is left on more replicas (3 to 5);
+    two of points that `min_replicas` replicas fit in (whole nets, where its
+    error is smallest) and spends what is left on more replicas (3 to 5 by default);
     with a tolerance there are `QMC_REPLICAS` and the nets grow.
     """
     strata: tuple[int, ...] = ()
@@ -107,7 +108,7 @@ def plan(
                         1 << int(math.floor(math.log2(max(per_replica // 8, 1)))))
             blocks = (per_replica // block) * replicas
         else:
-            net = final_net(budget)  # points per replica
+            net = final_net(budget, min_replicas)  # points per replica
             replicas = budget // net
             block = min(BLOCK, net)
             blocks = (net // block) * replicas

@@ -23,8 +23,9 @@ from ._adaptive import (
     training_rounds,
     uniform_grid,
 )
+from ._edged_grid import BENT_REPLICAS, edged
 from ._pilot_grid import grid_rounds
-from ._plan import ADAPTIVE_PROBE_REACH, PROBE_BUDGET, plan
+from ._plan import ADAPTIVE_PROBE_REACH, PROBE_BUDGET, QMC_MIN_REPLICAS, plan
 from ._seeded_mixture import adaptation_points, adapted_mixture
 from ._stream import stream_on_mesh
 
@@ -50,16 +51,32 @@ class Runner:
                 batched=self.batched,
             )
 
-    def block_method(self, method, key, budget, done=0, frozen=None, chunk=None):
+    def block_method(self, method, key, budget, done=0, frozen=None, chunk=None,
+                     min_replicas=QMC_MIN_REPLICAS):
         run_plan = plan(method, budget, chunk or self.chunk, self.mesh.size, self.d,
-                        tolerant=self.tolerant)
+                        tolerant=self.tolerant, min_replicas=min_replicas)
         return self._stream(key, frozen, run_plan, done)
 
-    def qmc(self, key, budget, done=0, grid=None):
+    def qmc(self, key, budget, done=0, grid=None, min_replicas=QMC_MIN_REPLICAS):
         """Randomised QMC: scrambled Sobol' nets, carried through a trained `grid`'s map if
         given (importance sampling from it, its density fixed for derivatives)."""
         frozen = None if grid is None else fixed_for_derivatives(grid)
-        return self.block_method("qmc", key, budget, done, frozen=frozen)
+        return self.block_method("qmc", key, budget, done, frozen=frozen,
+                                 min_replicas=min_replicas)
+
+    def grid_qmc(self, key, budget, done, grid):
+        """`qmc` through a trained `grid`, bent at the faces where it follows a singularity
+        (`edged`), with at least `BENT_REPLICAS` replicas there (a branch under `jit`)."""
+        bent = edged(grid)
+
+        def through(bent_grid):
+            if bent_grid:
+                return self.qmc(key, budget, done, grid=bent, min_replicas=BENT_REPLICAS)
+            return self.qmc(key, budget, done, grid=grid)
+
+        if is_concrete(bent.powered):
+            return through(bool(bent.powered))
+        return jax.lax.cond(bent.powered, lambda: through(True), lambda: through(False))
 
     def mixture(self, key, budget, done, mixture, draws, chunk, sized_by=None):
         """Refit auto's winning `mixture` to its pilot's `draws` and to points of its own

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from .._box import affine_to_box, log_volume, to_box
 from .._checks import check_bounds, check_count, is_concrete
-from ._base import AbstractUnitMap, _as_matrix, _sum_last
+from ._base import AbstractUnitMap, _as_matrix, sum_last
 
 
 class Grid(AbstractUnitMap):
@@ -123,7 +123,7 @@ class Grid(AbstractUnitMap):
         wi = gather(width)
         lo, hi = (jnp.reshape(b, (self.dim,)) for b in (self.lo, self.hi))
         x = to_box(gather(left) + wi * frac, lo, hi)  # never on a face, even if rounded there
-        log_p = -_sum_last(gather(log_w)) - log_volume(self.lo, self.hi)
+        log_p = -sum_last(gather(log_w)) - log_volume(self.lo, self.hi)
         return x, log_p, i
 
     def bin_index(self, x: jax.Array) -> jax.Array:
@@ -161,7 +161,7 @@ class Grid(AbstractUnitMap):
         # (a third of the time of a 16-D density).
         log_w = jax.lax.optimization_barrier(log_w)
         flat = self.bin_index(xm) + self.bins * jnp.arange(self.dim, dtype=jnp.int32)
-        lp = -_sum_last(log_w.at[flat].get(mode="promise_in_bounds")) - log_volume(self.lo, self.hi)
+        lp = -sum_last(log_w.at[flat].get(mode="promise_in_bounds")) - log_volume(self.lo, self.hi)
         inside = jnp.all(
             (xm >= jnp.reshape(self.lo, (self.dim,))) & (xm <= jnp.reshape(self.hi, (self.dim,))),
             axis=-1,
