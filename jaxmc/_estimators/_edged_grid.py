@@ -111,6 +111,8 @@ class EdgedGrid(eqx.Module):
         return jax.lax.cond(powered, lambda v: self._map(v), lambda v: self.grid.map(v), u)
 
     def _map(self, u):
+        """The bent map: each coordinate linear in $z$ within its bin, $x$ its distance
+        $z^p$ from the face (`split` says which), $q$ from the bin's slope and $z^{p-1}$."""
         grid = self.grid
         nb = grid.bins
         y = u * nb

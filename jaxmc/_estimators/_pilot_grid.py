@@ -155,8 +155,8 @@ def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     fits loosely (plain MC's through it above `GRID_QMC_MAX_VARIANCE`: the grid goes on
     adapting, QMC through it would not) or $f/q$ has a power-law tail (the replicas' spread
     understates, the refining grid gives the tighter honest error bar; see `_auto`), unless
-    the nets beat plain MC by `GRID_QMC_TAIL_GAIN`, or the grid's end bins follow a
-    singularity at a face (an `EdgedGrid`, powered) and the values reach a cap (`capped`)."""
+    the nets beat plain MC by `GRID_QMC_TAIL_GAIN`, or the grid is bent to a singularity on
+    a face (an `EdgedGrid` that is `powered`) and the values reach a cap (`capped`)."""
     y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
     edged = grid.powered if isinstance(grid, EdgedGrid) else jnp.asarray(False)
     return _grid_qmc_figures(y, edged, growth=growth)
@@ -165,9 +165,9 @@ def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
 @partial(jax.jit, static_argnames="growth")
 def _grid_qmc_figures(y, edged, *, growth):
     figures = measure_nets(y, growth, jnp.inf, GRID_QMC_TAIL_GAIN)
-    # Through end bins that follow a face's singularity, with powers raised above the
-    # grid's slope, f/q is bounded there; on a few thousand values the skew of the bins'
-    # masses then reads as a tail (x^-1/2 in 2-D: k-hat 0.7-0.9 on 4096 values, the
+    # Through a grid bent to a face's singularity, with powers raised above the grid's
+    # slope, f/q is bounded there; on a few thousand values the skew of the bins' masses
+    # then reads as a tail (x^-1/2 in 2-D: k-hat 0.7-0.9 on 4096 values, the
     # largest 1.1x the tenth; -0.2 to -0.45 on 32768), which a cap tells apart.
     heavy = figures.heavy & ~(edged & capped(y))
     loose = figures.plain > GRID_QMC_MAX_VARIANCE
