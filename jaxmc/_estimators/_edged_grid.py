@@ -163,8 +163,8 @@ def _tables(grid: Grid, low, high):
 
 
 @jax.jit
-def edge_powers(grid: Grid) -> tuple[jax.Array, jax.Array, jax.Array]:
-    r"""`(low, high, whether any is not 1)`, `low` and `high` `(d,)`: the power of each axis' first and last bin (`EdgedGrid`), the
+def edge_powers(grid: Grid) -> tuple[jax.Array, jax.Array]:
+    r"""`(low, high)` `(d,)`: the power of each axis' first and last bin (`EdgedGrid`), the
     slope of $\log e_k$ on $\log k$ over the edges `EDGE_FIT` from that face, raised by
     `EDGE_OVERSHOOT` (at most `MAX_EDGE_POWER`), or 1 where the slope is below
     `EDGE_MIN_POWER` or unread (all 1 on a grid of fewer than `MIN_EDGED_BINS` bins).
@@ -181,7 +181,7 @@ def edge_powers(grid: Grid) -> tuple[jax.Array, jax.Array, jax.Array]:
     nb = grid.bins
     if nb < MIN_EDGED_BINS:  # too few bins to read a law from
         ones = jnp.ones((grid.dim,), edges.dtype)
-        return ones, ones, jnp.asarray(False)
+        return ones, ones
     k = jnp.arange(EDGE_FIT[0], EDGE_FIT[1] + 1)
     log_k = jnp.log(k.astype(edges.dtype))
     centred = log_k - jnp.mean(log_k)
@@ -197,15 +197,14 @@ def edge_powers(grid: Grid) -> tuple[jax.Array, jax.Array, jax.Array]:
     resolved = [jnp.abs(jnp.spacing(face)) <= MAX_FACE_SPACING * width for face in (grid.lo, grid.hi)]
     low, high = (jnp.where(jnp.reshape(fine, (-1,)), power(distance), 1.0) for fine, distance
                  in zip(resolved, (edges[:, k], 1 - edges[:, nb - k])))
-    return low, high, jnp.any(low != 1) | jnp.any(high != 1)
+    return low, high
 
 
 @jax.jit
 def edged(grid: Grid) -> EdgedGrid:
     """The trained `grid` bent at the faces where it follows a singularity (`edge_powers`),
     for QMC through it: an `EdgedGrid` (`powered` says whether any face is bent)."""
-    low, high, _ = edge_powers(grid)
-    return EdgedGrid(grid, low, high)
+    return EdgedGrid(grid, *edge_powers(grid))
 
 
 def edged_if_singular(grid: Grid) -> Grid | EdgedGrid:

@@ -69,8 +69,8 @@ class Runner:
         (`edged`), with at least `BENT_REPLICAS` replicas there (a branch under `jit`)."""
         bent = edged(grid)
 
-        def through(bent_grid):
-            if bent_grid:
+        def through(bent_at_a_face):
+            if bent_at_a_face:
                 return self.qmc(key, budget, done, grid=bent, min_replicas=BENT_REPLICAS)
             return self.qmc(key, budget, done, grid=grid)
 
