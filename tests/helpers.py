@@ -97,6 +97,25 @@ def assert_unbiased_and_honest(est, exact, *, honest="equal"):
 _compiled_importance = eqx.filter_jit(jaxmc.importance)
 
 
+def assert_eager_method_honest(f, exact, lo, hi, n, method, keys, least):
+    """Over the eager `integrate` runs on `keys` that chose `method` (at least `least` of
+    them; the stream's randomness is independent of the pilot's choice): the mean error
+    within 5 of its standard errors, the reported variance not below the spread's (within
+    a chi-square band of 5 standard deviations)."""
+    means, variances = [], []
+    for k in keys:
+        est = jaxmc.integrate(jax.random.key(k), f, lo, hi, n=n)
+        if est.method == method:
+            means.append(float(est.mean))
+            variances.append(float(est.stderr) ** 2)
+    assert len(means) >= least, len(means)
+    means = np.asarray(means)
+    z = (means.mean() - exact) / (means.std(ddof=1) / np.sqrt(len(means)))
+    assert abs(z) < 5, z
+    ratio = means.var(ddof=1) / np.mean(variances)
+    assert ratio < 1 + 5 * np.sqrt(2 / (len(means) - 1)), ratio
+
+
 def auto_against(f, exact, lo, hi, n, chosen, other, keys=range(4)):
     """`integrate`'s default against `method=other` on the same keys: asserts that each
     default run chose `chosen` and is within 5 of its standard errors; returns both RMS

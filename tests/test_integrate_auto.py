@@ -32,13 +32,21 @@ def interior_singularity(x):
     return jnp.prod(jnp.abs(x - 1 / 3) ** -0.5 / per_axis)
 
 
-def _qmc_evaluations(est, evaluations):
-    """QMC's pilot evaluations in `est.pilot`: its nets' `evaluations`, and those of the search
-    for a ridge where its figures left room for one and it found none (`_pilot_ridge`)."""
+def _probes(d):
+    """What QMC's pilot evaluations may hold beyond its nets' in `d` dimensions: those of the
+    search for a ridge where its figures left room for one and it found none (`_pilot_ridge`),
+    and of the search for a singular corner where its values had a tail (`_pilot_corner`)."""
+    from jaxmc._estimators._corner import corner_probe_evaluations
     from jaxmc._estimators._ridge import PROBE_EVALUATIONS
 
+    return {r + c for r in (0, PROBE_EVALUATIONS) for c in (0, corner_probe_evaluations(d))}
+
+
+def _qmc_evaluations(est, evaluations, d):
+    """QMC's pilot evaluations in `est.pilot`: its nets' `evaluations`, and those of the
+    searches that found nothing (`_probes`)."""
     spent = est.pilot.evaluations[0]
-    assert spent in (evaluations, evaluations + PROBE_EVALUATIONS), est.pilot
+    assert spent - evaluations in _probes(d), est.pilot
     return spent
 
 
@@ -156,7 +164,7 @@ def test_qmc_pilot_reuses_its_early_look_exactly():
     # (A narrow peak: no clear win, early or on the whole nets.)
     key, f = jax.random.key(3), peak(3, s=0.03)
     settings = dict(f=f, per_replica=512, batched=False)
-    early, bins, early_stop, _, _ = _qmc_early_look(key, lo, hi, growth=8.0, **settings)
+    early, bins, early_stop = _qmc_early_look(key, lo, hi, growth=8.0, **settings)[:3]
     reused, _, _ = _qmc_pilot(key, lo, hi, (early, bins), early_stop, growth=8.0, **settings)
     y, whole_bins = net_values(key, lo, hi, f, False, 0, 4, 7, True)
     whole = measure_nets(y, 8.0, clear_win_gain(512))
@@ -253,7 +261,7 @@ def test_auto_drops_a_grid_whose_outlook_is_hopeless_before_screening_it():
             est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
             assert est.method == "qmc" and est.pilot.candidates == ("qmc",), (seed, est.pilot)
             # (QMC's, and the gradients of a search for a ridge where its cost was high enough)
-            spent = _qmc_evaluations(est, evaluations)
+            spent = _qmc_evaluations(est, evaluations, d)
             assert int(est.n) == spent + streamed, (seed, est.pilot)
             assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
     traced = jax.jit(lambda k: jaxmc.integrate(k, ball, jnp.zeros(3), jnp.ones(3), n=100_000))
@@ -304,7 +312,7 @@ def test_auto_drops_a_grid_whose_outlook_gains_little_over_plain_mc():
             est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
             assert est.method == chosen, (seed, est.pilot)
             assert est.pilot.candidates == ("qmc",) + (() if chosen == "qmc" else (chosen,))
-            _qmc_evaluations(est, evaluations)
+            _qmc_evaluations(est, evaluations, d)
             assert int(est.n) == sum(est.pilot.evaluations) + streamed, (seed, est.pilot)
             assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
     assert OUTLOOK_FLAT_GAIN == 4
@@ -316,7 +324,7 @@ def test_the_early_look_drops_the_grid_under_a_capped_tail_not_a_singularity():
     # largest values crowd under the peak's height: `capped`, and the grid's outlook drops
     # the grid. On x^-1/3 in 6-D and (sum x)^-3/2 in 4-D, where the grid wins, the tail is
     # capped on a few keys too (ratios of 1.8-2.5 happen), but the outlook never drops it.
-    from jaxmc._estimators._auto import _OUTLOOK_COSTS, split_keys
+    from jaxmc._estimators._auto import OUTLOOK_COSTS, split_keys
     from jaxmc._estimators._pilot_nets import (
         EARLY_MARGIN,
         clear_win_gain,
@@ -340,7 +348,7 @@ def test_the_early_look_drops_the_grid_under_a_capped_tail_not_a_singularity():
             y, bins = net_values(pilot_key, lo, hi, f, False, 0, 1, 7, True)
             early = early_look_figures(bins, y, 8.0, bar)
             heavy.append(bool(early.heavy))
-            dropped.append(bool(outlook_drops_grid(early, *_OUTLOOK_COSTS)))
+            dropped.append(bool(outlook_drops_grid(early, *OUTLOOK_COSTS)))
             if early.heavy and drops:
                 assert bool(early.capped), seed
         assert sum(heavy) >= 9, heavy  # (the resonance: 10 keys of 12)
@@ -393,7 +401,7 @@ def test_a_grid_no_better_than_uniform_out_of_sample_is_never_trained():
         est = jaxmc.integrate(jax.random.key(seed), half_space, jnp.zeros(d), jnp.ones(d),
                               n=100_000)
         assert est.method == "qmc" and est.pilot.candidates == ("qmc",), est.pilot
-        spent = _qmc_evaluations(est, 8 * 128)
+        spent = _qmc_evaluations(est, 8 * 128, d)
         assert int(est.n) == spent + 3 * 2**15, est.n
         assert abs(float(est.mean) - exact) < 5 * float(est.stderr), float(est.mean)
 
@@ -438,9 +446,10 @@ def test_auto_trains_the_grid_under_a_power_law_tail(inverse_square_roots):
     # QMC's 5-7 (plain MC's variance, credited under the tail) and was dropped on this key
     # (and 2 of 5 others), leaving QMC at ~1e-3 relative error; trained in full it measures
     # 0.4-0.6, refined on it erred ~1e-4 (vegas: 1.1e-4), and QMC through it, bent to the
-    # singular faces (`_edged_grid`), errs ~1e-6.
+    # singular faces (`_edged_grid`), errs ~1e-6, as does QMC through the cube bent to the
+    # singular corner (`_corner`), which measured lower on this key.
     est = inverse_square_roots
-    assert est.method in GRID_BASED, est.pilot
+    assert est.method in GRID_BASED + ("corner_qmc",), est.pilot
     assert est.pilot.evaluations[1] == 10 * 2**14, est.pilot.evaluations  # all 10 rounds
     assert abs(float(est.mean) - 1) < 1e-3, float(est.mean)
 
@@ -661,8 +670,9 @@ def test_auto_reads_a_tail_qmc_missed_on_the_trained_grid():
     # and their replicas' spread 0.065-0.10 per evaluation, below the trained grid's 0.17-0.20
     # x 3, and QMC was chosen, erring 4.8e-4 and 9.6e-4 (the refining grid: 8e-5 RMS over 16
     # keys). The grid's last round reads the tail (`tail_through_grid`): QMC is credited with
-    # plain MC's variance on its points. Now QMC through the grid bent to the singular faces
-    # wins (`_edged_grid`), erring 2e-6 and 3e-6, its values bounded: no flag.
+    # plain MC's variance on its points. Then QMC through the grid bent to the singular faces
+    # won (`_edged_grid`), erring 2e-6 and 3e-6, its values bounded: no flag; now QMC through
+    # the cube bent to the singular corner (`_corner`) measures lower, its values bounded too.
     from jaxmc._estimators._pilot_grid import tail_through_grid
     from jaxmc._estimators._pilot_nets import QMCFigures
 
@@ -672,7 +682,7 @@ def test_auto_reads_a_tail_qmc_missed_on_the_trained_grid():
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", jaxmc.ReliabilityWarning)
             est = jaxmc.integrate(jax.random.key(seed), f, *box(d), n=1_000_000)
-        assert est.method == "grid_qmc", (seed, est.pilot)
+        assert est.method in ("grid_qmc", "corner_qmc"), (seed, est.pilot)
         assert not caught and not bool(jaxmc.stats.unreliable(est))
         assert abs(float(est.mean) - 1) < min(5 * float(est.stderr), 2e-5), (seed, est)
     # A tail of the grid's values marks QMC's figures heavy, at plain MC's variance.
@@ -752,7 +762,9 @@ def test_auto_reads_the_trained_grid_by_its_rounds_scatter_under_a_singularity()
     # then realised ~0.01: the scatter of its last rounds' means says so (0.007-0.018).
     # With 256 bins (`fine_grid_bins`) the scatter is 30x below the round's variance on
     # keys 2, 3 and 7 of 1-8; on the others the round's 0.25-0.32 stands and QMC wins
-    # (at about the same actual error, ~4e-4, its error bar the i.i.d. bound).
+    # (at about the same actual error, ~4e-4, its error bar the i.i.d. bound). The grid
+    # then won on these keys; now QMC through the cube bent to the singular corner wins
+    # (`_corner`, 30-100x below the grid's figure), but the grid's figure is read as before.
     d, power = 4, 1.5
     f = lambda x: jnp.sum(x) ** -power
     # Inclusion-exclusion over the box's corners: G(s) = s^(d - a) / prod_k (k - a).
@@ -760,7 +772,7 @@ def test_auto_reads_the_trained_grid_by_its_rounds_scatter_under_a_singularity()
     exact = sum((-1) ** k * math.comb(d, k) * (d - k) ** (d - power) for k in range(d + 1)) / scale
     for seed in (2, 3, 7):
         est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
-        assert est.method == "adaptive", (seed, est.pilot)
+        assert est.method == "corner_qmc", (seed, est.pilot)
         qmc, grid = np.asarray(est.pilot.variance_per_evaluation)[:2]
         assert grid < qmc / 10, (qmc, grid)
         assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
@@ -854,9 +866,10 @@ def test_a_new_integrand_compiles_only_what_evaluates_it():
     assert first.method == second.method == "mixture"
     names = {m.group(1) for m in (re.search(r"jit\((\w+)\)", c) for c in compiled) if m}
     # (Under the peaks' power-law tail the grid's rounds are one program, `staged_grid_rounds`.)
-    # (and the search for a ridge: the integrand's gradients at QMC's largest values)
+    # (and the search for a ridge: the integrand's gradients at QMC's largest values; and, under
+    # the tail, for a singular corner: rays to the corner nearest them)
     assert names == {"net_values", "ridge_direction", "staged_grid_rounds", "grid_net_values",
-                     "_modes", "mixture_values", "stream"}, names
+                     "_modes", "mixture_values", "corner_probe", "stream"}, names
     for est in (first, second):
         assert abs(float(est.mean) - 1) < 5 * float(est.stderr)
 
@@ -919,9 +932,9 @@ def _traced_matches_the_eager_choice(traced, f, lo, hi):
     (the traced estimates are the bias check's above). An eager pilot whose winner already
     costs less than any mixture skips fitting one (its evaluations then left unspent, not
     counted in `n`); under jit the mixture is measured. An eager pilot that searched for a
-    ridge at QMC's points spent its probes' evaluations (`_pilot_ridge`; not under jit): its
-    stream is at most that much shorter (then its estimate is another, as unbiased)."""
-    from jaxmc._estimators._ridge import PROBE_EVALUATIONS
+    ridge at QMC's points, or for a singular corner, spent its probes' evaluations
+    (`_pilot_ridge`, `_pilot_corner`; not under jit): its stream is at most that much shorter
+    (then its estimate is another, as unbiased)."""
 
     keys = jax.random.split(jax.random.key(3), 120)
     choice = np.asarray(traced.pilot.choice)
@@ -931,7 +944,7 @@ def _traced_matches_the_eager_choice(traced, f, lo, hi):
         assert eager.method == traced.pilot.candidates[taken] and eager.method in GRID_BASED, i
         assert int(eager.pilot.choice) == taken, i
         probes = eager.pilot.evaluations[0] - traced.pilot.evaluations[0]
-        assert probes in (0, PROBE_EVALUATIONS), i
+        assert probes in _probes(lo.shape[0]), i
         shorter = int(traced.n[i]) - sum(traced.pilot.evaluations) \
             - (int(eager.n) - sum(eager.pilot.evaluations))
         assert 0 <= shorter <= probes, i  # (the stream's blocks may absorb them)

@@ -9,7 +9,7 @@ from scipy.integrate import dblquad
 import jaxmc
 from jaxmc._estimators._ridge import RIDGE_DEFENSIVE, profiled_ridge, ridge_direction
 
-from .helpers import auto_against, box
+from .helpers import assert_eager_method_honest, auto_against, box
 
 
 # A Breit-Wigner resonance in s = w . x, off the axes (as the `auto` benchmark's).
@@ -110,22 +110,9 @@ def test_auto_takes_the_ridge_on_an_oblique_resonance(resonance_exact):
 
 
 def test_the_ridge_stream_is_unbiased_and_honest(resonance_exact):
-    # Over the keys that took the ridge (most of 48; the stream's randomness is independent
-    # of the pilot's choice): the mean error within 5 of its standard errors, the reported
-    # variance not below the spread's.
-    lo, hi = box(3)
-    means, variances = [], []
-    for k in range(48):
-        est = jaxmc.integrate(jax.random.key(100 + k), resonance, lo, hi, n=2**15)
-        if est.method == "ridge_qmc":
-            means.append(float(est.mean))
-            variances.append(float(est.stderr) ** 2)
-    assert len(means) >= 40, len(means)
-    means = np.asarray(means)
-    z = (means.mean() - resonance_exact) / (means.std(ddof=1) / np.sqrt(len(means)))
-    assert abs(z) < 5, z
-    ratio = means.var(ddof=1) / np.mean(variances)
-    assert ratio < 1 + 5 * np.sqrt(2 / (len(means) - 1)), ratio
+    # Over the keys that took the ridge (at least 40 of 48).
+    assert_eager_method_honest(resonance, resonance_exact, *box(3), 2**15, "ridge_qmc",
+                               range(100, 148), least=40)
 
 
 def test_the_ridge_serves_float32(resonance_exact):

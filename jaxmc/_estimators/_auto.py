@@ -93,6 +93,10 @@ The candidates:
 - `"ridge_qmc"`: QMC's nets through a density along one direction, for a ridge function
   $g(w \cdot x)$ (a resonance off the axes), which neither a product of axis densities nor
   QMC's nets follow: measured where QMC won, not clearly (`_pilot_ridge`).
+- `"corner_qmc"`: QMC's nets through the cube bent towards a corner where $f$ is singular,
+  $x_j = z_j^p$ on the axes that meet there (`_corner`), for a point singularity that no
+  face's power shows ($(\sum_j x_j)^{-3/2}$, whose marginals are bounded): sought where QMC's
+  values or the grid's rounds show a power-law tail (`_pilot_corner`).
 
 The times per evaluation $c$ are fixed ratios (`RELATIVE_COST`), not clock readings, so
 `"auto"` is deterministic in `(key, n)`: the grid's map, its training and the stratified
@@ -112,7 +116,6 @@ from __future__ import annotations
 
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -122,20 +125,32 @@ from ._adaptive import FINE_GRID_MAX_DIM, fine_grid_bins, grid_bins, tail_refini
 from ._edged_grid import edged_if_singular
 from ._held_out import held_out_drops_grid
 from ._mode_search import search_evaluations
+from ._pilot_choice import (  # (CANDIDATES to SCREEN_MARGIN: the rules, read there)
+    CANDIDATES,
+    MIXTURE_FLOOR,
+    MIXTURE_HOPELESS,
+    OUTLOOK_COSTS,
+    RELATIVE_COST,
+    SCREEN_MARGIN,
+    after_training,
+    mixture_hopeless,
+    qmc_alone,
+    screen_young_grid,
+    with_mixture,
+)
+from ._pilot_corner import seek_corner, with_corner_candidate
 from ._pilot_grid import (
     credited_for_refining,
     grid_qmc_pilot,
     grid_rounds,
-    round_figures,
     run_rounds,
     staged_grid_rounds,
     tail_through_grid,
 )
-from ._pilot_mixture import follows_a_singularity, mixture_outlook, mixture_pilot
+from ._pilot_mixture import mixture_outlook, mixture_pilot
 from ._pilot_nets import (
     EARLY_MARGIN,
     MAX_NET_GROWTH,
-    QMCFigures,
     clear_win_gain,
     early_look_figures,
     net_values,
@@ -144,51 +159,16 @@ from ._pilot_nets import (
     whole_nets_figures,
 )
 from ._pilot_record import Pilot
-from ._pilot_ridge import RIDGE_COST, ridge_probe, room_for_a_ridge, with_ridge_candidate
+from ._pilot_ridge import ridge_probe, room_for_a_ridge, with_ridge_candidate
 from ._plan import QMC_REPLICAS, final_net
 
 
-CANDIDATES = ("qmc", "adaptive", "grid_qmc", "mixture")
-# Time per evaluation, relative to a Sobol' point.
-RELATIVE_COST = {"qmc": 1.0, "adaptive": 3.0, "grid_qmc": 2.0, "mixture": 12.0,
-                 "ridge_qmc": RIDGE_COST}
+__all__ = ["CANDIDATES", "MIXTURE_FLOOR", "MIXTURE_HOPELESS", "MIXTURE_PILOT_POINTS",
+           "OUTLOOK_COSTS", "RELATIVE_COST", "SCREEN_MARGIN", "SCREEN_ROUNDS", "run_pilot",
+           "split_keys"]
+
 MIXTURE_PILOT_POINTS = 4096  # at most this many points measure it
-# The lowest relative variance per evaluation expected of a mixture seeded from the
-# grid: measured 0.02-0.07 on vegas's and i-flow's Gaussians and camels at 1e5.
-MIXTURE_FLOOR = 0.01
-_OUTLOOK_COSTS = (RELATIVE_COST["adaptive"], RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
 SCREEN_ROUNDS = 3  # VEGAS+ rounds before the grid may be dropped without full training
-# A mixture whose figure on the grid's points (`mixture_outlook`) costs this many times QMC's
-# or the grid's is not measured. The ratio, 4 keys at 1e5 and 1e6: 8.9-68 on x^-1/3 in 6-D,
-# x^-1/2 in 2-D and (sum x)^-3/2 in 4-D (the measured mixture then cost 6-100x the grid),
-# 5.8-8.3 on the 4-D resonance where its grid trained (the mixture measured too loose to
-# compete); at most 1.1 where the mixture won or came near (two 4-D Gaussians, the 5-D
-# posterior, i-flow's 16-D camel and 8-D Gaussian, vegas's 4-D Gaussian, the 10-D ball).
-MIXTURE_HOPELESS = 4.0
-# A young grid this much costlier than QMC is not trained on (never under a power-law tail
-# of QMC's values, see `_screen`). Measured after 3 rounds, against QMC's projected cost,
-# 4 keys of every `auto` benchmark case that was no clear win, at 1e5 and 1e6: where the
-# grid or its mixture then won with QMC's values not heavy-tailed, 0.6-1.5x (two 4-D
-# Gaussians; the 10-D ball's QMC saw nothing); where QMC won, 0.9-740x, 3-17x on 16 of
-# those 41 runs (camel 4-D, annulus, oblique resonances, 3-D ball, half-space), which
-# trained the grid and fitted a mixture at 20x. At 3x, over 10 keys at 1e5, camel 4-D, the
-# 12-D resonance and the half-space took 1.7-2x less time, the 4-D resonance 1.2x (the
-# estimates unchanged, or from larger nets); the 4-D corner singularity and i-flow's 8-D
-# Gaussian (young 80 per evaluation against QMC's 18, then 0.35) kept it at 20 before their
-# power-law exemption. With it, 3x -> 2x (keys 100-115 at 1e5, 100-111 at 1e6): the 4-D
-# resonance trained the grid on 6 keys of 16 instead of 11 (QMC then won on 3 and 8 of
-# them), 2.2x the efficiency at 1e5 and 1.4x at 1e6; the 12-D one 1.2x at 1e5; the 4-D
-# camel took QMC on the 3 keys of 16 where QMC through the trained grid had won (RMS error
-# 3.7e-4 -> 4.1e-4); the 10-D ball, the 3-D ball, the annulus, the 8-D half-space and
-# Genz's 8-D continuous and discontinuous chose as before.
-SCREEN_MARGIN = 2.0
-
-
-def _alone(qmc: QMCFigures, evaluations: int) -> Pilot:
-    """The `Pilot` record of a clear QMC win (made inside the figures' compiled program:
-    eagerly, its three small arrays cost ~0.1 ms)."""
-    v = qmc.variance[None]
-    return Pilot(("qmc",), v, v, jnp.asarray(0, jnp.int32), (evaluations,))
 
 
 def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
@@ -207,9 +187,9 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
 @partial(jax.jit, static_argnames=("growth", "bar"))
 def _early_verdict(bins, y, *, growth, bar):
     qmc = early_look_figures(bins, y, growth, bar)
-    stop = qmc.clear_win | outlook_drops_grid(qmc, *_OUTLOOK_COSTS) | held_out_drops_grid(qmc, bins, y)
-    return stop, _alone(qmc, y.shape[1] * QMC_REPLICAS), room_for_a_ridge(qmc.variance,
-                                                                         qmc.clear_win)
+    stop = qmc.clear_win | outlook_drops_grid(qmc, *OUTLOOK_COSTS) | held_out_drops_grid(qmc, bins, y)
+    return stop, qmc_alone(qmc, y.shape[1] * QMC_REPLICAS), room_for_a_ridge(qmc.variance,
+                                                                         qmc.clear_win), qmc.heavy
 
 
 def _qmc_pilot(key, lo, hi, early, early_stop, *, f, per_replica, growth, batched):
@@ -225,87 +205,7 @@ def _qmc_pilot(key, lo, hi, early, early_stop, *, f, per_replica, growth, batche
 def _qmc_figures(early, rest, early_stop, *, growth, bar):
     y, bins = (jnp.concatenate(parts, axis=1) for parts in zip(early, rest))
     qmc = whole_nets_figures(bins, y, early_stop, growth, bar)
-    return qmc, _alone(qmc, y.shape[1] * QMC_REPLICAS), outlook_drops_grid(qmc, *_OUTLOOK_COSTS)
-
-
-def _choose(qmc: QMCFigures, variance, blind):
-    """`(variance, cost, choice)` of the candidates, given QMC's pilot and every
-    candidate's variance per evaluation and blindness (QMC's first)."""
-    # A pilot that saw only zeros (a peak its points missed), or whose mean a handful of
-    # points carried, measured nothing: it never beats one that measured the integrand.
-    # If none did, the grid, which kept looking as it trained, is the better bet.
-    variance = jnp.where(blind & ~jnp.all(blind), jnp.inf, variance)
-    cost = variance * jnp.asarray([RELATIVE_COST[c] for c in CANDIDATES], variance.dtype)
-    choice = jnp.where(qmc.clear_win, 0, jnp.where(jnp.all(blind), 1, jnp.argmin(cost)))
-    return variance, cost, choice.astype(jnp.int32)
-
-
-def _first(choice, k):
-    """`(variance, cost, choice)` restricted to the first `k` candidates."""
-    return tuple(a[:k] if a.ndim else a for a in choice)
-
-
-# The decisions between the pilot's stages, each one compiled program (run eagerly, their
-# dozens of small operations were ~1.5 s of compilation in a first call).
-@eqx.filter_jit
-def _screen(qmc: QMCFigures, parts, samples, active, *, rounds, round_size):
-    """QMC against the young grid (its rounds' estimates and last `Samples`, `run_rounds`):
-    `(its figures, the choice, the choice restricted to the two, whether it is dropped)`."""
-    v_grid, grid_blind, _ = round_figures(parts, samples, active, rounds=rounds,
-                                          round_size=round_size)
-    # Nothing is carried through a young grid, nor seeded from it; one its outlook drops is none.
-    v_grid = jnp.where(outlook_drops_grid(qmc, *_OUTLOOK_COSTS), jnp.inf, v_grid)
-    screened = _choose(qmc, jnp.stack([qmc.variance, v_grid, jnp.inf, jnp.inf]),
-                       jnp.stack([qmc.blind, grid_blind, True, True]))
-    # Dropped only if SCREEN_MARGIN times costlier than QMC as it stands, and never under a
-    # power-law tail: there a young grid's rounds are as heavy-tailed as QMC's values, and
-    # their variances say nothing of the trained grid's (x^-1/2 in 2-D at 1e6: 35-110
-    # after 3 rounds, 0.4-0.6 after 10, against QMC's 5-7 credited as plain MC), nor on a
-    # product the trained grid flattens (Genz's 8-D continuous: 0.49 after 3 rounds, 1.8e-6
-    # after 10 carried through by QMC, against QMC's 0.05).
-    qmc_cost, grid_cost = screened[1][:2]
-    decided = (grid_cost > SCREEN_MARGIN * qmc_cost) & ~qmc.blind & ~qmc.heavy & ~qmc.separable
-    return (v_grid, grid_blind), screened, _first(screened, 2), decided
-
-
-@eqx.filter_jit
-def _after_training(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, screened,
-                    decided):
-    """QMC, the trained grid and QMC through it (the screened choice where the grid was
-    dropped), and whether no mixture need be fitted: QMC or the grid costs less than any
-    measured would (`MIXTURE_FLOOR`; not QMC through the grid: on a grid holding one of two
-    separated peaks $f/q$ is smooth and its figure low, and only the mixture's pilot seeks
-    the missed peak: i-flow's 16-D camel at 1e5, one key of 10 took it and returned half the
-    truth, before this), or the grid follows a singularity (`follows_a_singularity`)."""
-    three = _choose(qmc, jnp.stack([qmc.variance, v_grid, grid_qmc.variance, jnp.inf]),
-                    jnp.stack([qmc.blind, grid_blind, grid_blind | grid_qmc.blind, True]))
-    beaten = ~decided & ((jnp.min(three[1][:2]) < RELATIVE_COST["mixture"] * MIXTURE_FLOOR)
-                         | follows_a_singularity(qmc, grid_qmc, three[0][1]))
-    three = tuple(jnp.where(decided, a, b) for a, b in zip(_first(screened, 3), _first(three, 3)))
-    return three, beaten
-
-
-@jax.jit
-def _hopeless(outlook, cost):
-    """Whether the mixture, at its figure on the grid's points (`mixture_outlook`), costs
-    `MIXTURE_HOPELESS` times as much as QMC or the grid (`cost`: QMC's, the grid's, ...).
-    Not QMC through the grid, as for `MIXTURE_FLOOR` (`_after_training`)."""
-    return RELATIVE_COST["mixture"] * outlook > MIXTURE_HOPELESS * jnp.min(cost[:2])
-
-
-@eqx.filter_jit
-def _with_mixture(qmc: QMCFigures, v_grid, grid_blind, grid_qmc: QMCFigures, v_mixture,
-                  mixture_blind, grid_misses, screened, decided):
-    """The four candidates after training (the screened choice where the grid was dropped);
-    a grid that misses a mode the mixture holds (`grid_misses`) is none, nor QMC through it."""
-    measured = jnp.isfinite(v_mixture) & ~mixture_blind
-    misses = grid_misses & measured
-    v_grid = jnp.where(misses, jnp.inf, v_grid)
-    v_grid_qmc = jnp.where(misses, jnp.inf, grid_qmc.variance)
-    trained = _choose(qmc, jnp.stack([qmc.variance, v_grid, v_grid_qmc, v_mixture]),
-                      jnp.stack([qmc.blind, grid_blind, grid_blind | grid_qmc.blind,
-                                 grid_blind | mixture_blind]))
-    return tuple(jnp.where(decided, a, b) for a, b in zip(screened, trained))
+    return qmc, qmc_alone(qmc, y.shape[1] * QMC_REPLICAS), outlook_drops_grid(qmc, *OUTLOOK_COSTS)
 
 
 @jax.jit
@@ -345,8 +245,9 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     is trained at all; where the nets' first quarter shows `EARLY_MARGIN` times that gain, or
     drops the grid so, the rest of them go unevaluated (shortcuts are taken outside `jit` only).
 
-    A ridge function's density (`"ridge_qmc"`, `_pilot_ridge`) joins the candidates at the
-    end; where it wins, the second slot holds the `RidgeMap` it streams through.
+    A ridge function's density (`"ridge_qmc"`, `_pilot_ridge`) and the cube bent towards a
+    singular corner (`"corner_qmc"`, `_pilot_corner`) join the candidates at the end; where
+    one wins, the second slot holds the map it streams through.
 
     The stream's budget depends only on how far the pilot went, QMC's early look,
     screening or training, not on whether a shortcut then skipped the grid or the mixture
@@ -361,23 +262,31 @@ def run_pilot(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant=Fal
     early_growth = min(final_net(early_rest) / (per_replica // 4), MAX_NET_GROWTH)
     look = _qmc_early_look(keys[0], lo, hi, f=f, per_replica=per_replica, growth=early_growth,
                            batched=batched)
-    early, _, early_stop, alone, room = look
+    early, _, early_stop, alone, room, heavy = look
     probe = (ridge_probe(keys[0], f, lo, hi, early, batched=batched, per_replica=per_replica)
              if is_concrete(room) and bool(room) else None)
-    result = (alone, None, None, early_rest) if is_concrete(early_stop) and bool(early_stop) \
-        else _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size,
-                                     tolerant, look, per_replica)
-    if probe is None:
-        return result
-    return with_ridge_candidate(result, keys[0], f, lo, hi, probe, batched=batched,
-                                budget=budget, per_replica=per_replica)
+    if is_concrete(early_stop) and bool(early_stop):
+        result, tail = (alone, None, None, early_rest), heavy
+    else:
+        result, tail = _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds,
+                                               round_size, tolerant, look, per_replica)
+        tail = tail | heavy
+    if probe is not None:
+        result = with_ridge_candidate(result, keys[0], f, lo, hi, probe, batched=batched,
+                                      budget=budget, per_replica=per_replica)
+    if is_concrete(tail) and bool(tail):  # (an unbounded integrand: seek its corner)
+        corner = seek_corner(keys[0], f, lo, hi, early, batched=batched, per_replica=per_replica)
+        result = with_corner_candidate(result, keys[0], f, lo, hi, corner, batched=batched,
+                                       per_replica=per_replica)
+    return result
 
 
 def _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size, tolerant,
                             look, per_replica):
     """`run_pilot` on from QMC's early look where it did not choose QMC (`look`, its
-    results, `_qmc_early_look`, on nets of `per_replica` points)."""
-    early, early_bins, early_stop, alone, _ = look
+    results, `_qmc_early_look`, on nets of `per_replica` points): `(its result, whether QMC's
+    values or the grid's rounds showed a power-law tail)`."""
+    early, early_bins, early_stop, alone = look[:4]
     qmc_n = per_replica * QMC_REPLICAS
     key_qmc, key_screen, key_train, key_mixture = keys
     screen = min(SCREEN_ROUNDS, rounds)
@@ -388,7 +297,7 @@ def _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size
     qmc, alone, unpromising = _qmc_pilot(key_qmc, lo, hi, (early, early_bins), early_stop, f=f,
                                          per_replica=per_replica, growth=growth, batched=batched)
     if is_concrete(qmc.clear_win) and (bool(qmc.clear_win) or bool(unpromising)):
-        return alone, None, None, screened_rest
+        return (alone, None, None, screened_rest), qmc.heavy
     # Fine bins under a power-law tail, held either way (`VegasPlus.coarse`: may be traced).
     bins = fine_grid_bins if lo.size <= FINE_GRID_MAX_DIM else grid_bins
     coarse, grid = ~qmc.heavy, uniform_grid(lo, hi, bins=bins(round_size))
@@ -403,12 +312,12 @@ def _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size
             (key_screen, key_train), grid, screen, coarse, **settings)
     else:
         parts, state, samples = run_rounds(key_screen, grid, jnp.int32(screen), coarse, **settings)
-        (v_grid, grid_blind), screened, screened_two, decided = _screen(
+        (v_grid, grid_blind), screened, screened_two, decided = screen_young_grid(
             qmc, parts, samples, jnp.int32(screen), rounds=rounds, round_size=round_size)
         if is_concrete(decided) and bool(decided):
             variance, cost, choice = screened_two
             pilot = Pilot(CANDIDATES[:2], variance, cost, choice, (qmc_n, screen * round_size))
-            return pilot, state, None, screened_rest
+            return (pilot, state, None, screened_rest), qmc.heavy
         if rounds > screen:
             v_grid, grid_blind, grid_tail, state, samples = grid_rounds(
                 key_train, state.grid, jnp.int32(rounds - screen), coarse, **settings)
@@ -428,23 +337,23 @@ def _pilot_after_early_look(keys, f, lo, hi, budget, batched, rounds, round_size
         v_grid = credited_for_refining(v_grid, ~coarse, qmc, grid_qmc)  # (`is_fine`: refines on)
     # No mixture measured so far has gone below MIXTURE_FLOOR: when another candidate already
     # costs less, or the grid follows a singularity, none is fitted (outside jit only).
-    (variance, cost, choice), beaten = _after_training(qmc, v_grid, grid_blind, grid_qmc,
+    (variance, cost, choice), beaten = after_training(qmc, v_grid, grid_blind, grid_qmc,
                                                        screened, decided)
     without_mixture = Pilot(CANDIDATES[:3], variance, cost, choice, trained_n)
     if mixture_n == 0 or (is_concrete(beaten) and bool(beaten)):
-        return without_mixture, state, None, trained_rest
+        return (without_mixture, state, None, trained_rest), qmc.heavy
     # The mixture seeded from the grid, judged on the grid's points before the search for
     # modes and its own points are paid for: hopeless, it is not measured (outside jit).
     mixture, outlook = mixture_outlook(state.grid, samples)
-    hopeless = _hopeless(outlook, cost)
+    hopeless = mixture_hopeless(outlook, cost)
     if is_concrete(hopeless) and bool(hopeless):
-        return without_mixture, state, None, trained_rest
+        return (without_mixture, state, None, trained_rest), qmc.heavy
     v_mixture, mixture_blind, mixture, draws, searched, grid_misses = mixture_pilot(
         key_mixture, mixture, state.grid, samples, key_qmc, early, f=f, size=mixture_n,
         batched=batched,
     )
-    variance, cost, choice = _with_mixture(qmc, v_grid, grid_blind, grid_qmc, v_mixture,
+    variance, cost, choice = with_mixture(qmc, v_grid, grid_blind, grid_qmc, v_mixture,
                                            mixture_blind, grid_misses, screened, decided)
     evaluations = trained_n + (mixture_n + (search_n if searched else 0),)
     pilot = Pilot(CANDIDATES, variance, cost, choice, evaluations)
-    return pilot, state, (mixture, draws), trained_rest
+    return (pilot, state, (mixture, draws), trained_rest), qmc.heavy

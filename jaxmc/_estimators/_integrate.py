@@ -35,6 +35,7 @@ from .._integrand import bind
 from .._stats import Estimate, ReliabilityWarning, estimate_fields
 from ._adaptive import adaptive_block, is_fine, training_rounds
 from ._auto import run_pilot, split_keys
+from ._edged_grid import BENT_REPLICAS
 from ._pilot_record import Pilot
 from ._plan import PROBE_BUDGET, PROBE_REACH, QMC_REPLICAS
 from ._runner import Runner
@@ -103,7 +104,8 @@ def integrate(
       the evaluations left; under `jit` every stage runs, so the budget can
       split differently (both estimates unbiased; where the eager pilot
       skipped nothing they agree). The ridge density (`"ridge_qmc"`, below)
-      is sought eagerly only.
+      and the cube bent towards a singular corner (`"corner_qmc"`) are sought
+      eagerly only.
     - `f`: the integrand, written for one point (or batched with `batched=True`).
     - `lo`, `hi`: the box (scalars or shape `(d,)`).
     - `rtol`, `atol`: tolerances on the standard error; give either or both,
@@ -132,7 +134,13 @@ def integrate(
           axes), it also measures QMC's nets through a density along $w$
           (`est.method` `"ridge_qmc"`: one coordinate drawn given the others
           from the profile $|g|$, read along the cube's diagonal, so that the
-          integral over that coordinate is done nearly exactly; eagerly only);
+          integral over that coordinate is done nearly exactly; eagerly only).
+          Where QMC's values or the grid's rounds have a power-law tail and
+          `f` grows as a power of the distance to a corner of the box, as
+          $(\sum_j x_j)^{-a}$ does at 0, it measures QMC's nets through the
+          cube bent towards that corner, $x_j = z_j^p$ on the axes that meet
+          there, with $p$ read off `f` along rays to it so that $f/q$ stays
+          bounded (`est.method` `"corner_qmc"`; eagerly only);
           `est.method` names the winner and `est.pilot` keeps the figures.
           The pilot's evaluations count in `n` but not in the mean, which
           stays unbiased.
@@ -301,6 +309,8 @@ def integrate(
             mixture=lambda: run.mixture(key, rest, spent, *mixture, mixture_chunk, sized_rest),
             # Scrambled Sobol' nets through the pilot's ridge density (`state`: its map).
             ridge_qmc=lambda: run.qmc(key, rest, spent, grid=state),
+            # ... and through the pilot's map bent towards a singular corner.
+            corner_qmc=lambda: run.qmc(key, rest, spent, grid=state, min_replicas=BENT_REPLICAS),
         )
         branches = [streams[name] for name in pilot.candidates]
         if is_concrete(pilot.choice):

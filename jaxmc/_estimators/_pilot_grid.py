@@ -12,6 +12,7 @@ from .._diagnostics import bounded_variance, power_law_tail, tail_of
 from .._integrand import ratio
 from ..fit import Integrand, VegasPlus, run_adaptation
 from ._adaptive import grid_bins
+from ._corner import CornerMap
 from ._edged_grid import EdgedGrid
 from ._pilot_nets import QMCFigures, capped, grid_net_values, measure_nets, relative_variance
 
@@ -155,11 +156,12 @@ def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     fits loosely (plain MC's through it above `GRID_QMC_MAX_VARIANCE`: the grid goes on
     adapting, QMC through it would not) or $f/q$ has a power-law tail (the replicas' spread
     understates, the refining grid gives the tighter honest error bar; see `_auto`), unless
-    the nets beat plain MC by `GRID_QMC_TAIL_GAIN`, or the grid is bent to a singularity on
-    a face (an `EdgedGrid` that is `powered`) and the values reach a cap (`capped`)."""
+    the nets beat plain MC by `GRID_QMC_TAIL_GAIN`, or the map is bent to a singularity (a
+    grid on a face, an `EdgedGrid` that is `powered`; the cube at a corner, a `CornerMap`) and
+    the values reach a cap (`capped`)."""
     y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
-    edged = grid.powered if isinstance(grid, EdgedGrid) else jnp.asarray(False)
-    return _grid_qmc_figures(y, edged, growth=growth)
+    bent = grid.powered if isinstance(grid, EdgedGrid) else jnp.asarray(isinstance(grid, CornerMap))
+    return _grid_qmc_figures(y, bent, growth=growth)
 
 
 @partial(jax.jit, static_argnames="growth")

@@ -22,7 +22,8 @@ class Pilot(eqx.Module):
     - `cost`: `variance_per_evaluation` times the relative time per evaluation.
     - `choice`: index of the winner in `candidates`.
     - `evaluations`: integrand evaluations the pilot spent, per candidate (QMC's with those
-      of a search for a ridge at its points that found none, `_pilot_ridge`).
+      of a search for a ridge at its points, `_pilot_ridge`, or for a singular corner,
+      `_pilot_corner`, that found none).
     """
 
     candidates: tuple[str, ...] = eqx.field(static=True)
@@ -34,7 +35,8 @@ class Pilot(eqx.Module):
     def __repr__(self) -> str:
         """`Pilot(choice='adaptive', qmc=(variance 2.63, cost 2.63, 5120 evaluations), ...)`:
         each candidate's figures (`inf`: blind, unfitted, too loose a fit to compete, values
-        with a power-law tail through the grid, or a grid that misses a mode the mixture holds);
+        with a power-law tail through the grid, or a grid that misses a mode the mixture holds
+        or is not bent at a singular corner);
         equinox's repr (shapes and dtypes) when traced, or batched under `vmap`."""
         if not concrete(self) or jnp.ndim(self.choice) != 0:
             return eqx.Module.__repr__(self)
@@ -45,3 +47,37 @@ class Pilot(eqx.Module):
         ]
         chosen = self.candidates[int(self.choice)]
         return f"Pilot(choice={chosen!r}, {', '.join(figures)})"
+
+
+def appended(pilot: Pilot, name: str, variance, blind, relative_cost: float,
+             evaluations: int) -> Pilot:
+    """`pilot` with one more candidate, `name`, measured at `variance` per evaluation
+    (`inf` where `blind`) at `relative_cost` times a Sobol' point's time: chosen where it
+    costs less than the winner."""
+    variance, cost, choice = _appended(pilot.variance_per_evaluation, pilot.cost, pilot.choice,
+                                       variance, blind, relative_cost)
+    return Pilot(pilot.candidates + (name,), variance, cost, choice,
+                 pilot.evaluations + (evaluations,))
+
+
+@jax.jit
+def _appended(variance, cost, choice, v_new, blind, relative_cost):
+    v_new = jnp.where(blind, jnp.inf, v_new.astype(variance.dtype))
+    new_cost = relative_cost * v_new
+    wins = new_cost < cost[choice]
+    return (jnp.concatenate([variance, v_new[None]]), jnp.concatenate([cost, new_cost[None]]),
+            jnp.where(wins, variance.shape[0], choice).astype(jnp.int32))
+
+
+def dropped(pilot: Pilot, name: str) -> Pilot:
+    """`pilot` with candidate `name` no candidate (its figures `inf`), the choice the
+    cheapest of the rest where it was `name`."""
+    variance, cost, choice = _dropped(pilot.variance_per_evaluation, pilot.cost, pilot.choice,
+                                      pilot.candidates.index(name))
+    return Pilot(pilot.candidates, variance, cost, choice, pilot.evaluations)
+
+
+@jax.jit
+def _dropped(variance, cost, choice, index):
+    variance, cost = (a.at[index].set(jnp.inf) for a in (variance, cost))
+    return variance, cost, jnp.where(choice == index, jnp.argmin(cost), choice).astype(jnp.int32)

@@ -19,11 +19,10 @@ each, 1.0e-4 and 4.8e-4.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
 from ._pilot_grid import grid_qmc_pilot
 from ._pilot_nets import MAX_NET_GROWTH, net_points
-from ._pilot_record import Pilot
+from ._pilot_record import Pilot, appended
 from ._plan import final_net
 from ._ridge import (
     PROBE_EVALUATIONS,
@@ -84,21 +83,8 @@ def with_ridge_candidate(result, key, f, lo, hi, probe, *, batched, budget, per_
         pilot = Pilot(pilot.candidates, pilot.variance_per_evaluation, pilot.cost, pilot.choice,
                       evaluations)
         return pilot, state, mixture, rest - spent
-    variance, cost, choice = _appended(pilot.variance_per_evaluation, pilot.cost, pilot.choice,
-                                       figures.variance, figures.blind)
-    pilot = Pilot(pilot.candidates + ("ridge_qmc",), variance, cost, choice,
-                  pilot.evaluations + (spent,))
-    if int(choice) == len(pilot.candidates) - 1:
+    pilot = appended(pilot, "ridge_qmc", figures.variance, figures.blind, RIDGE_COST, spent)
+    if int(pilot.choice) == len(pilot.candidates) - 1:
         return pilot, ridge, None, rest - spent  # (the map "ridge_qmc" streams through)
     return pilot, state, mixture, rest - spent
 
-
-@jax.jit
-def _appended(variance, cost, choice, v_ridge, ridge_blind):
-    """The pilot's figures with the ridge's appended, and the choice: the ridge where it costs
-    less than the winner."""
-    v_ridge = jnp.where(ridge_blind, jnp.inf, v_ridge.astype(variance.dtype))
-    ridge_cost = RIDGE_COST * v_ridge
-    wins = ridge_cost < cost[choice]
-    return (jnp.concatenate([variance, v_ridge[None]]), jnp.concatenate([cost, ridge_cost[None]]),
-            jnp.where(wins, variance.shape[0], choice).astype(jnp.int32))
