@@ -175,7 +175,8 @@ def _qmc_early_look(key, lo, hi, *, f, per_replica, growth, batched):
     """The first quarter of the pilot's nets (`per_replica // 4` points each), measured: `(their
     values and bins, whether QMC wins clearly by `EARLY_MARGIN` times their bar or the grid's
     outlook on them drops it (`outlook_drops_grid`, `held_out_drops_grid`), its lone `Pilot`,
-    whether it leaves room for a ridge, `room_for_a_ridge`)`."""
+    whether it leaves room for a ridge, `room_for_a_ridge`, whether the values have a
+    power-law tail)`."""
     quarter = per_replica // 4
     y, bins = net_values(key, lo, hi, f, batched, 0, 1, quarter.bit_length() - 1, True)
     return (y, bins) + _early_verdict(bins, y, growth=growth,

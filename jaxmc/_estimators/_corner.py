@@ -103,8 +103,8 @@ def corner_probe(f, batched, lo, hi, points, values):
     held = jnp.where(jnp.eye(d, dtype=bool)[:, None, :], 0.5, ray[None])
     u = jnp.concatenate([ray[None], held])
     y = evaluate(f, jnp.reshape(lo + width * u, (-1, d)), batched)
-    magnitude = jnp.sqrt(jnp.sum(jnp.reshape(jnp.abs(y) ** 2, u.shape[:2] + (-1,)), axis=-1))
-    log_f = jnp.log(magnitude)  # (d + 1, len(_RAY))
+    size = jnp.sqrt(jnp.sum(jnp.reshape(jnp.abs(y) ** 2, u.shape[:2] + (-1,)), axis=-1))
+    log_f = jnp.log(size)  # (d + 1, len(_RAY)): the norm of f's components
     log_t = jnp.log(t)
 
     def slope(v, lt):

@@ -1,8 +1,9 @@
 r"""The map bent towards a singular corner (`_corner`) as a candidate of `integrate(method="auto")`'s
 pilot.
 
-Sought where QMC's early look shows a power-law tail (an unbounded integrand), outside
-`jit` only: `corner_probe` reads $f$ along rays to the corner nearest its largest values.
+Sought where QMC's values (its early look's or its whole nets') or the grid's rounds show a
+power-law tail (an unbounded integrand), outside `jit` only: `corner_probe` reads $f$ along
+rays to the corner that QMC's largest early values lie nearest, by a vote.
 Where it finds a power law, QMC's nets through the `CornerMap` are measured as QMC through
 a bent grid is (`grid_qmc_pilot`: values that reach a cap are no tail, since $f/q$ is
 bounded by construction) and chosen where they cost less than the pilot's winner. The map
