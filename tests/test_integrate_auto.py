@@ -260,7 +260,7 @@ def test_auto_drops_a_grid_whose_outlook_is_hopeless_before_screening_it():
         for seed in seeds:
             est = jaxmc.integrate(jax.random.key(seed), f, jnp.zeros(d), jnp.ones(d), n=100_000)
             assert est.method == "qmc" and est.pilot.candidates == ("qmc",), (seed, est.pilot)
-            # (QMC's, and the gradients of a search for a ridge where its cost was high enough)
+            # (QMC's, and what searches that found nothing spent: `_probes`)
             spent = _qmc_evaluations(est, evaluations, d)
             assert int(est.n) == spent + streamed, (seed, est.pilot)
             assert abs(float(est.mean) - exact) < 5 * float(est.stderr), seed
