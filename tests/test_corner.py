@@ -53,7 +53,6 @@ def test_the_probe_reads_the_corner_and_its_power(f, d, toward_hi, power):
     np.testing.assert_allclose(corner.power, power, rtol=2e-3)
     meets = np.asarray(power) > 1  # (the other axes' faces are the vote's, and do not matter)
     np.testing.assert_array_equal(np.asarray(corner.toward_hi)[meets], np.asarray(toward_hi)[meets])
-    assert corner_probe_evaluations(d) == 7 * (d + 1)
 
 
 @pytest.mark.parametrize("f", [

@@ -71,6 +71,11 @@ class CornerMap(eqx.Module):
     def dim(self) -> int:
         return self.lo.shape[0]
 
+    @property
+    def powered(self) -> jax.Array:
+        """Whether any axis maps with a power other than 1 (as `EdgedGrid.powered`)."""
+        return jnp.any(self.power != 1)
+
     def map(self, u):
         """`(x, log q(x))` on the box for unit points `u` `(n, d)`, as a grid's `map`."""
         z = jnp.maximum(u, jnp.finfo(u.dtype).tiny)

@@ -17,7 +17,7 @@ from ._corner import bends_corner, corner_probe, corner_probe_evaluations
 from ._edged_grid import BENT_REPLICAS, edge_powers
 from ._pilot_grid import grid_qmc_pilot
 from ._pilot_nets import MAX_NET_GROWTH, net_points
-from ._pilot_record import Pilot, appended, dropped
+from ._pilot_record import appended, charged_to_qmc, dropped
 from ._plan import QMC_REPLICAS, final_net
 
 
@@ -50,10 +50,7 @@ def with_corner_candidate(result, key, f, lo, hi, probe, *, batched, per_replica
     pilot, state, mixture, rest = result
     spent, corner = probe
     if corner is None:
-        evaluations = (pilot.evaluations[0] + spent,) + pilot.evaluations[1:]
-        pilot = Pilot(pilot.candidates, pilot.variance_per_evaluation, pilot.cost, pilot.choice,
-                      evaluations)
-        return pilot, state, mixture, rest - spent
+        return charged_to_qmc(pilot, spent), state, mixture, rest - spent
     if pilot.candidates[int(pilot.choice)] == "grid_qmc" and not bool(
             bends_corner(corner, *edge_powers(state.grid))):
         # Through a grid whose density stays bounded at the corner, f/q is unbounded there:

@@ -160,18 +160,18 @@ def grid_qmc_pilot(key, grid, *, f, per_replica, growth, batched):
     grid on a face, an `EdgedGrid` that is `powered`; the cube at a corner, a `CornerMap`) and
     the values reach a cap (`capped`)."""
     y = grid_net_values(key, grid, f, batched, per_replica.bit_length() - 1)
-    bent = grid.powered if isinstance(grid, EdgedGrid) else jnp.asarray(isinstance(grid, CornerMap))
+    bent = grid.powered if isinstance(grid, (EdgedGrid, CornerMap)) else jnp.asarray(False)
     return _grid_qmc_figures(y, bent, growth=growth)
 
 
 @partial(jax.jit, static_argnames="growth")
-def _grid_qmc_figures(y, edged, *, growth):
+def _grid_qmc_figures(y, bent, *, growth):
     figures = measure_nets(y, growth, jnp.inf, GRID_QMC_TAIL_GAIN)
     # Through a grid bent to a face's singularity, with powers raised above the grid's
     # slope, f/q is bounded there; on a few thousand values the skew of the bins' masses
     # then reads as a tail (x^-1/2 in 2-D: k-hat 0.7-0.9 on 4096 values, the
     # largest 1.1x the tenth; -0.2 to -0.45 on 32768), which a cap tells apart.
-    heavy = figures.heavy & ~(edged & capped(y))
+    heavy = figures.heavy & ~(bent & capped(y))
     loose = figures.plain > GRID_QMC_MAX_VARIANCE
     variance = jnp.where(loose | heavy, jnp.inf, figures.variance)
     return eqx.tree_at(lambda q: (q.variance, q.heavy), figures, (variance, heavy))

@@ -49,6 +49,13 @@ class Pilot(eqx.Module):
         return f"Pilot(choice={chosen!r}, {', '.join(figures)})"
 
 
+def charged_to_qmc(pilot: Pilot, evaluations: int) -> Pilot:
+    """`pilot` with `evaluations` more in QMC's count: a search at QMC's points that found
+    nothing to measure (a ridge, a singular corner)."""
+    spent = (pilot.evaluations[0] + evaluations,) + pilot.evaluations[1:]
+    return Pilot(pilot.candidates, pilot.variance_per_evaluation, pilot.cost, pilot.choice, spent)
+
+
 def appended(pilot: Pilot, name: str, variance, blind, relative_cost: float,
              evaluations: int) -> Pilot:
     """`pilot` with one more candidate, `name`, measured at `variance` per evaluation

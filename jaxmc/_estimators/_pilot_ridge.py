@@ -22,7 +22,7 @@ import jax
 
 from ._pilot_grid import grid_qmc_pilot
 from ._pilot_nets import MAX_NET_GROWTH, net_points
-from ._pilot_record import Pilot, appended
+from ._pilot_record import appended, charged_to_qmc
 from ._plan import final_net
 from ._ridge import (
     PROBE_EVALUATIONS,
@@ -79,10 +79,7 @@ def with_ridge_candidate(result, key, f, lo, hi, probe, *, batched, budget, per_
         figures = grid_qmc_pilot(jax.random.fold_in(key, 1), ridge, f=f, per_replica=quarter,
                                  growth=growth, batched=batched)
     if figures is None:  # (the probes were at QMC's points: they count in its evaluations)
-        evaluations = (pilot.evaluations[0] + spent,) + pilot.evaluations[1:]
-        pilot = Pilot(pilot.candidates, pilot.variance_per_evaluation, pilot.cost, pilot.choice,
-                      evaluations)
-        return pilot, state, mixture, rest - spent
+        return charged_to_qmc(pilot, spent), state, mixture, rest - spent
     pilot = appended(pilot, "ridge_qmc", figures.variance, figures.blind, RIDGE_COST, spent)
     if int(pilot.choice) == len(pilot.candidates) - 1:
         return pilot, ridge, None, rest - spent  # (the map "ridge_qmc" streams through)
