@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +82,27 @@ def time_call(fn: Callable[[], Any], *, repeats: int = 5) -> Timing:
         output = jax.block_until_ready(fn())
         seconds.append(time.perf_counter() - start)
     return Timing(tuple(seconds), output)
+
+
+# The event JAX records once per program compiled by XLA (its backend compilation).
+_BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"
+
+
+@contextlib.contextmanager
+def compiled_programs() -> Iterator[list[float]]:
+    """The seconds of each XLA compilation inside the block (its length: the programs
+    compiled; a cache hit of the persistent compilation cache is none)."""
+    seconds: list[float] = []
+
+    def listener(event: str, duration: float, **_: Any) -> None:
+        if event == _BACKEND_COMPILE:
+            seconds.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield seconds
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def normal_equivalent(absz, dofs) -> np.ndarray:

@@ -41,6 +41,7 @@ the same comparison for another method of `integrate`.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import os
@@ -52,10 +53,11 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from . import problems
+from . import problems, validation
 from ._harness import (
     Context,
     Result,
+    compiled_programs,
     markdown_table,
     normal_equivalent,
     optional_import,
@@ -77,57 +79,49 @@ COVERAGE_SIGMAS = 2.0
 SEEDS = 40
 QUICK_SEEDS = 5
 RETIME_SEEDS = 20  # seeds timed again in the second pass (`_retime`)
+JIT_SEEDS = 10  # seeds timed under jax.jit (after its compiling first call)
 LIBRARIES = ("jaxmc", "vegas", "scipy")
 
 
 @dataclasses.dataclass(frozen=True)
 class Case:
     problem: Problem
+    half: str = "tuning"  # "tuning" (the cases `auto` was developed on) or "validation"
     finite_variance: bool = True  # infinite-variance cases are left out of the coverage summary
 
 
 def _cases(quick: bool) -> list[Case]:
     if quick:
-        # Each case's first jaxmc call compiles auto's pilots and its chosen method (~5 s):
-        # one smooth, two peaked and one correlated case.
-        chosen = [
-            problems.genz_oscillatory(8),
-            problems.vegas_narrow_gaussian(),
-            problems.iflow_camel(4),
-            problems.correlated_gaussian(5),
-        ]
-        return [Case(p) for p in chosen]
-    genz = [
-        family(d)
-        for family in (
-            problems.genz_oscillatory,
-            problems.genz_product_peak,
-            problems.genz_corner_peak,
-            problems.genz_gaussian,
-            problems.genz_continuous,
-            problems.genz_discontinuous,
-        )
-        for d in (2, 8, 16)
-    ]
-    peaked = [
+        # One smooth, two peaked and one correlated case, two of each half.
+        return [Case(problems.genz_oscillatory(8)), Case(problems.vegas_narrow_gaussian()),
+                Case(problems.iflow_camel(4), "validation"),
+                Case(problems.correlated_gaussian(5))]
+    # The tuning half: the families and shapes `auto` was developed on. The validation half:
+    # the other families of the same suite, and kinds the tuning half lacks (`validation`).
+    tuning = [
+        *(family(d) for family in (problems.genz_oscillatory, problems.genz_product_peak,
+                                   problems.genz_gaussian) for d in (2, 8, 16)),
         problems.vegas_narrow_gaussian(),
-        problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
         problems.iflow_gaussian(8),
-        problems.iflow_camel(4),
         problems.iflow_camel(16),
-        problems.iflow_annulus(),
-    ]
-    users = [
         problems.correlated_gaussian(5),
         problems.oblique_resonance(4),
-        problems.oblique_resonance(12),
         problems.power_singularity(6, 1 / 3),
-        problems.corner_singularity(4, 1.5),
         problems.ball_indicator(3),
+    ]
+    held = [
+        *(family(d) for family in (problems.genz_corner_peak, problems.genz_continuous,
+                                   problems.genz_discontinuous) for d in (2, 8, 16)),
+        problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
+        problems.iflow_camel(4),
+        problems.iflow_annulus(),
+        problems.oblique_resonance(12),
+        problems.corner_singularity(4, 1.5),
         problems.ball_indicator(10),
         problems.half_space_indicator(8),
+        *validation.cases(),
     ]
-    cases = [Case(p) for p in (*genz, *peaked, *users)]
+    cases = [Case(p) for p in tuning] + [Case(p, "validation") for p in held]
     cases.append(Case(problems.power_singularity(2, 0.5), finite_variance=False))
     return cases
 
@@ -136,18 +130,24 @@ def _cases(quick: bool) -> list[Case]:
 # One call per library: (estimate, stderr, evaluations, extra, degrees of freedom) for one seed.
 
 
-def _jaxmc_call(problem: Problem, n: int) -> Callable[[int], tuple]:
+def _jaxmc_call(problem: Problem, n: int, jit: bool = False) -> Callable[[int], tuple]:
+    """jaxmc's call, eager or under `jax.jit` (the jitted function made once, so that only
+    its first call compiles)."""
     import jaxmc
 
     f = problem.jax_f  # one bound method for every call, so the compiled loop is reused
 
+    def integrate(key):
+        return jaxmc.integrate(key, f, problem.lo, problem.hi, n=n, method=JAXMC_METHOD)
+
+    run = jax.jit(integrate) if jit else integrate
+
     def call(seed):
-        est = jaxmc.integrate(
-            jax.random.key(seed), f, problem.lo, problem.hi, n=n, method=JAXMC_METHOD
-        )
-        est = jax.block_until_ready(est)
-        method = getattr(est, "method", None)
-        chose = "?" if method is None else str(method)
+        est = jax.block_until_ready(run(jax.random.key(seed)))
+        pilot = getattr(est, "pilot", None)
+        chose = str(getattr(est, "method", "?"))
+        if chose == "auto" and pilot is not None:  # (traced: the choice is on the pilot)
+            chose = pilot.candidates[int(pilot.choice)]
         return float(est.mean), float(est.stderr), int(est.n), chose, float(est.dof)
 
     return call
@@ -206,9 +206,12 @@ def _measure(call: Callable[[int], tuple], seeds: int, exact: float, compiles: b
     outputs, seconds = [], []
     try:
         for seed in range(seeds):
-            timing = time_call(lambda s=seed: call(s), repeats=0)
+            with compiled_programs() as compiled:
+                timing = time_call(lambda s=seed: call(s), repeats=0)
             outputs.append(timing.output)
             seconds.append(timing.first_s)
+            if seed == 0:
+                programs = len(compiled)
     except Exception as error:  # one failing library must not hide the others' results
         return {"error": f"{type(error).__name__}: {error}"[:200]}
     means = np.array([o[0] for o in outputs], dtype=float)
@@ -222,15 +225,24 @@ def _measure(call: Callable[[int], tuple], seeds: int, exact: float, compiles: b
         "rel_stderr": float(np.sqrt(np.mean(stderrs**2)) / abs(exact)),
         "seconds": t,
         "first_s": seconds[0],
+        "programs": programs,
         "efficiency": 1 / (relerr**2 * t) if relerr > 0 else math.inf,
         "coverage": float(np.mean(normal_equivalent(np.abs(means - exact) / stderrs, dofs)
                                   <= COVERAGE_SIGMAS)),
         "evals": float(np.mean([o[2] for o in outputs])),
-        "note": outputs[-1][3],
+        "note": _choices([o[3] for o in outputs]),
         "means": means.tolist(),
         "stderrs": stderrs.tolist(),
         "dofs": dofs.tolist(),
     }
+
+
+def _choices(chosen: list[str]) -> str:
+    """The method chosen, or each with its share of the seeds where they differ."""
+    counts = collections.Counter(chosen)
+    if len(counts) == 1:
+        return chosen[0]
+    return ", ".join(f"{name} {count / len(chosen):.2f}" for name, count in counts.most_common())
 
 
 def _retime(call: Callable[[int], tuple], seeds: int, result: dict) -> dict:
@@ -292,6 +304,78 @@ def run(ctx: Context) -> Result:
         return _run(ctx)
 
 
+def _measure_jit(problem: Problem, n: int, eager: dict, seeds: int) -> dict:
+    """jaxmc under `jax.jit` (one jitted function per case): its first, compiling call and
+    programs compiled, its median steady-state time over `seeds` seeds after the first,
+    and the largest difference of its estimates from the eager ones on the same seeds,
+    relative to their standard errors (0: the same numbers)."""
+    if "means" not in eager:
+        return {}
+    call = _jaxmc_call(problem, n, jit=True)
+    try:
+        with compiled_programs() as compiled:
+            first = time_call(lambda: call(0), repeats=0)
+        seconds, differences = [], [abs(first.output[0] - eager["means"][0])
+                                    / eager["stderrs"][0]]
+        for seed in range(1, seeds + 1):
+            timing = time_call(lambda s=seed: call(s), repeats=0)
+            seconds.append(timing.first_s)
+            differences.append(abs(timing.output[0] - eager["means"][seed]) / eager["stderrs"][seed])
+    except Exception as error:  # (reported, as an eager failure is)
+        return {"error": f"{type(error).__name__}: {error}"[:200]}
+    return {"first_s": first.first_s, "programs": len(compiled),
+            "seconds": statistics.median(seconds), "max_difference": max(differences)}
+
+
+def _summary_line(label: str, at: list[dict]) -> tuple[str, dict]:
+    """A half's (or the whole suite's) figures at one budget."""
+    ratios = [r["ratio"] for r in at]
+    behind = [r["case"] for r in at if math.isfinite(r["ratio"]) and r["ratio"] < 1]
+    coverage = {
+        lib: min((r[lib]["coverage"] for r in at if r["finite_variance"] and "coverage" in r[lib]),
+                 default=math.nan)
+        for lib in LIBRARIES
+    }
+    errors = [r["case"] for r in at if "error" in r["jaxmc"]]
+    data = {"geomean_ratio": _geomean(ratios), "cases_behind": behind, "min_coverage": coverage,
+            "jaxmc_errors": errors}
+    text = (
+        f"{label}: geometric mean of the ratio {_geomean(ratios):.3g} over "
+        f"{sum(math.isfinite(v) for v in ratios)} cases; ratio < 1 in {len(behind)}"
+        + (f" ({', '.join(behind)})" if behind else "")
+        + "; min coverage (finite-variance cases) "
+        + ", ".join(f"{lib} {coverage[lib]:.2f}" for lib in LIBRARIES)
+        + (f"; jaxmc raised in {len(errors)} ({', '.join(errors)})" if errors else "")
+    )
+    return text, data
+
+
+def _compile_line(records: list[dict]) -> tuple[str, dict]:
+    """First calls (compilation included) eagerly and under `jit`, programs compiled, the
+    steady-state time under `jit` against eagerly, and whether the estimates agree."""
+    figures = {}
+    for way, get in (("eager", lambda r: r["jaxmc"]), ("jit", lambda r: r["jaxmc"].get("jit", {}))):
+        firsts = [get(r)["first_s"] for r in records if "first_s" in get(r)]
+        programs = [get(r)["programs"] for r in records if "programs" in get(r)]
+        if firsts:
+            figures[way] = {"median_first_s": statistics.median(firsts), "max_first_s": max(firsts),
+                            "median_programs": statistics.median(programs)}
+    slower = [r["jaxmc"]["jit"]["seconds"] / r["jaxmc"]["seconds"] for r in records
+              if "seconds" in r["jaxmc"].get("jit", {}) and "seconds" in r["jaxmc"]]
+    differences = [r["jaxmc"]["jit"]["max_difference"] for r in records
+                   if "max_difference" in r["jaxmc"].get("jit", {})]
+    figures["jit_over_eager_max"] = max(slower, default=math.nan)
+    figures["jit_eager_max_difference"] = max(differences, default=math.nan)
+    text = "; ".join(
+        f"{way}: first call median {v['median_first_s']:.1f} s, max {v['max_first_s']:.1f} s, "
+        f"median {v['median_programs']:.0f} programs"
+        for way, v in figures.items() if isinstance(v, dict)
+    ) + (f"; steady-state time under jit at most {figures['jit_over_eager_max']:.2f}x eager's; "
+         f"estimates under jit differ from eager ones by at most "
+         f"{figures['jit_eager_max_difference']:.2g} standard errors")
+    return text, figures
+
+
 def _run(ctx: Context) -> Result:
     quick = ctx.quick
     budgets = (100_000,) if quick else (100_000, 1_000_000)
@@ -319,16 +403,16 @@ def _run(ctx: Context) -> Result:
                 warnings.simplefilter("ignore", RuntimeWarning)
                 for lib in calls:  # the second pass of times, after all three
                     results[lib] = _retime(calls[lib], min(RETIME_SEEDS, seeds - 1), results[lib])
-            # Each case compiles its own programs; dropping them keeps a long run under the
-            # kernel's limit on memory mappings (LLVM: "Cannot allocate memory" after ~60 cases).
-            jax.clear_caches()
+                if "means" in results["jaxmc"]:
+                    results["jaxmc"]["jit"] = _measure_jit(problem, n, results["jaxmc"],
+                                                           min(JIT_SEEDS, seeds - 1))
             ratio = _ratio(results)
             jx = results["jaxmc"]
             method = jx.get("note", "error: " + jx.get("error", ""))
             record = {
                 "case": problem.name, "d": problem.d, "n": n, "exact": problem.exact,
-                "finite_variance": case.finite_variance, "method": method, "ratio": ratio,
-                **{lib: results[lib] for lib in LIBRARIES},
+                "half": case.half, "finite_variance": case.finite_variance, "method": method,
+                "ratio": ratio, **{lib: results[lib] for lib in LIBRARIES},
             }
             records.append(record)
 
@@ -336,12 +420,15 @@ def _run(ctx: Context) -> Result:
                 value = _results[lib].get(key)
                 return value * scale if value is not None else "err"
 
+            jit = jx.get("jit", {})
             rows.append([
                 problem.name + ("" if case.finite_variance else " (inf. var.)"),
-                problem.d, f"{n:.0e}", method,
+                case.half[0].upper(), problem.d, f"{n:.0e}", method,
                 *(cell(lib, "relerr") for lib in LIBRARIES),
                 *(cell(lib, "seconds", 1e3) for lib in LIBRARIES),
-                cell("jaxmc", "first_s"),
+                jit.get("seconds", math.nan) * 1e3,
+                f"{jx.get('first_s', math.nan):.1f} ({jx.get('programs', '?')})",
+                f"{jit.get('first_s', math.nan):.1f} ({jit.get('programs', '?')})",
                 *(cell(lib, "efficiency") for lib in LIBRARIES),
                 *(cell(lib, "coverage") for lib in LIBRARIES),
                 "/".join(
@@ -355,9 +442,10 @@ def _run(ctx: Context) -> Result:
                 f"({time.perf_counter() - start:.0f} s)"
             )
     header = [
-        "integrand", "d", "N", "auto chose",
+        "integrand", "half", "d", "N", "auto chose",
         "jaxmc relerr", "vegas relerr", "scipy relerr",
-        "jaxmc ms", "vegas ms", "scipy ms", "jaxmc 1st call s",
+        "jaxmc ms", "vegas ms", "scipy ms", "jaxmc ms (jit)",
+        "jaxmc 1st call s (programs)", "jaxmc 1st call s (programs), jit",
         "jaxmc eff", "vegas eff", "scipy eff",
         "jaxmc cov", "vegas cov", "scipy cov",
         "evals/N j/v/s", "ratio",
@@ -365,45 +453,37 @@ def _run(ctx: Context) -> Result:
     summary, data_summary = [], {}
     for n in budgets:
         at_n = [r for r in records if r["n"] == n]
-        ratios = [r["ratio"] for r in at_n]
-        behind = [r["case"] for r in at_n if math.isfinite(r["ratio"]) and r["ratio"] < 1]
-        coverage = {
-            lib: min(
-                (r[lib]["coverage"] for r in at_n if r["finite_variance"] and "coverage" in r[lib]),
-                default=math.nan,
-            )
-            for lib in LIBRARIES
-        }
-        errors = [r["case"] for r in at_n if "error" in r["jaxmc"]]
-        data_summary[str(n)] = {
-            "geomean_ratio": _geomean(ratios), "cases_behind": behind, "min_coverage": coverage,
-            "jaxmc_errors": errors,
-        }
-        summary.append(
-            f"- N = {n:.0e}: geometric mean of the ratio {_geomean(ratios):.3g} over "
-            f"{sum(math.isfinite(v) for v in ratios)} cases; ratio < 1 in {len(behind)}"
-            + (f" ({', '.join(behind)})" if behind else "")
-            + "; min coverage (finite-variance cases) "
-            + ", ".join(f"{lib} {coverage[lib]:.2f}" for lib in LIBRARIES)
-            + (f"; jaxmc raised in {len(errors)} ({', '.join(errors)})" if errors else "")
-            + "."
-        )
+        data_summary[str(n)] = {}
+        for half in ("tuning", "validation", "all"):
+            at = [r for r in at_n if half == "all" or r["half"] == half]
+            if not at:
+                continue
+            text, data = _summary_line(f"N = {n:.0e}, {half}", at)
+            summary.append(f"- {text}.")
+            data_summary[str(n)][half] = data
+        text, data = _compile_line([r for r in at_n if "jaxmc" in r])
+        summary.append(f"- N = {n:.0e}, compilation: {text}.")
+        data_summary[str(n)]["compilation"] = data
     plot = _plot(ctx, records, budgets)
     notes = (
-        f"jaxmc method {JAXMC_METHOD!r}; {seeds} seeds per (case, N); float64 throughout. "
+        f"jaxmc method {JAXMC_METHOD!r}; {seeds} seeds per (case, N); float64 throughout; one "
+        "process, every case's programs compiled in it (no cache cleared between cases). "
+        "`half`: T, the tuning half (the cases `auto` was developed on), V, the validation "
+        "half (the rest of the suite's families and kinds the tuning half lacks). "
         "`relerr`: RMS over seeds of (estimate − I)/I; `ms`: median wall time of one "
-        "steady-state call (jaxmc's first, compiling call apart, in `1st call s`), the "
-        f"smaller of two passes (all seeds, then {RETIME_SEEDS} again after the three "
-        "libraries ran); `eff` = "
+        "steady-state call (jaxmc's first, compiling call apart, in `1st call s`, with the "
+        "number of XLA programs it compiled), the smaller of two passes (all seeds, then "
+        f"{RETIME_SEEDS} again after the three libraries ran); `ms (jit)`: jaxmc's call under "
+        f"`jax.jit`, median over {JIT_SEEDS} seeds; `eff` = "
         "1/(relerr² · s); `cov`: share of seeds with |estimate − I| ≤ 2 stderr, or the "
         "Student-t quantile of the same level (0.954) for an error bar with few degrees of "
         "freedom (jaxmc's `Estimate.dof`; 7 for SciPy's 8 scrambles); `evals/N`: "
         "integrand evaluations per call over N; `ratio`: jaxmc's eff over the better of "
         "vegas's and SciPy's (> 1: jaxmc ahead); `auto chose`: the method `integrate` "
-        "reports (`?` when it does not say). vegas: `integ(f, nitn=10, neval=N/40)` discarded, "
-        "then `integ(f, nitn=10, neval=3N/40)` (vegas's tutorial protocol; a quarter of the "
-        "budget to adapt), `lbatchintegrand`, `gvar.ranseed(seed)`. SciPy: `qmc_quad` with 8 "
-        "scrambled Sobol' rules of 2^round(log2(N/8)) points. With "
+        "reports, its share of the seeds where they differ. vegas: `integ(f, nitn=10, "
+        "neval=N/40)` discarded, then `integ(f, nitn=10, neval=3N/40)` (vegas's tutorial "
+        "protocol; a quarter of the budget to adapt), `lbatchintegrand`, `gvar.ranseed(seed)`. "
+        "SciPy: `qmc_quad` with 8 scrambled Sobol' rules of 2^round(log2(N/8)) points. With "
         f"{seeds} seeds a ratio is uncertain by a factor ~{math.exp(2 / math.sqrt(seeds)):.1f} "
         "(relerr² from few samples); wall-clock times on a shared machine are noisy."
     )

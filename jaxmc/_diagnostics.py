@@ -47,6 +47,7 @@ __all__ = [
     "ReliabilityWarning",
     "rounding_floor",
     "tail_of",
+    "largest",
     "tail_sums",
     "empty_tail",
     "merge_tails",
@@ -108,11 +109,11 @@ class Tail(NamedTuple):
     top: jax.Array
 
 
-# Groups of this many entries in which `_largest` looks for the largest ones first.
+# Groups of this many entries in which `largest` looks for the largest ones first.
 _GROUP = 16
 
 
-def _largest(a: jax.Array, axis: int) -> jax.Array:
+def largest(a: jax.Array, axis: int) -> jax.Array:
     r"""The `TAIL + 1` largest entries of `a >= 0` along `axis`, moved last, decreasing (zero padded).
 
     Where there are many entries (a stream's block of $2^{14}$), the search
@@ -174,7 +175,7 @@ def tail_of(c: jax.Array, valid: jax.Array | None = None) -> Tail:
         abs_sum=jnp.sum(a, axis=0),
         sq_sum=jnp.sum(a * a, axis=0),
         nonzero=jnp.sum(a > 0, axis=0).astype(c.dtype),
-        top=_largest(a, 0),
+        top=largest(a, 0),
     ))
 
 
@@ -206,7 +207,7 @@ def merge_tails(a: Tail, b: Tail) -> Tail:
         a.abs_sum + b.abs_sum,
         a.sq_sum + b.sq_sum,
         a.nonzero + b.nonzero,
-        _largest(jnp.concatenate([a.top, b.top], axis=-1), -1),
+        largest(jnp.concatenate([a.top, b.top], axis=-1), -1),
     )
 
 
@@ -223,7 +224,7 @@ def gather_tails(t: Tail, axes: tuple[str, ...]) -> Tail:
         jax.lax.psum(t.abs_sum, axes),
         jax.lax.psum(t.sq_sum, axes),
         jax.lax.psum(t.nonzero, axes),
-        _largest(top, -1),
+        largest(top, -1),
     )
 
 

@@ -35,6 +35,7 @@ from ._diagnostics import (
     empty_tail,
     floored_variance,
     gather_tails,
+    largest,
     merge_tails,
     pareto_k,
     reliability_reasons as reliability_reasons,
@@ -224,22 +225,22 @@ def _expand(count: jax.Array, like: jax.Array) -> jax.Array:
 
 
 def merge_all(stacked: Moments) -> Moments:
-    """Merge moments stacked along axis 0 by a balanced pairwise tree.
-
-    The tree keeps rounding error at $O(\\log k)$ merges deep for $k$ parts.
-    """
-    k = stacked.count.shape[0]
-    while k > 1:
-        half = k // 2
-        first = jax.tree.map(lambda x: x[:half], stacked)
-        second = jax.tree.map(lambda x: x[half : 2 * half], stacked)
-        merged = merge(first, second)
-        if k % 2:
-            rest = jax.tree.map(lambda x: x[2 * half :], stacked)
-            merged = jax.tree.map(lambda x, y: jnp.concatenate([x, y]), merged, rest)
-        stacked = merged
-        k = stacked.count.shape[0]
-    return jax.tree.map(lambda x: x[0], stacked)
+    r"""Merge moments stacked along axis 0 at once: $N = \sum_i n_i$,
+    $\bar x = \sum_i n_i \bar x_i / N$, $M_2 = \sum_i M_{2,i} + \sum_i n_i (\bar x_i - \bar x)^2$
+    (Chan, Golub and LeVeque's update for $k$ parts: exact, two passes over the parts)."""
+    count = jnp.sum(stacked.count, axis=0)
+    weight = _expand(stacked.count / jnp.where(count > 0, count, 1), stacked.mean)
+    mean = jnp.sum(weight * stacked.mean, axis=0)
+    spread = _expand(stacked.count, stacked.mean) * (stacked.mean - mean) ** 2
+    m2 = jnp.sum(stacked.m2, axis=0) + jnp.sum(spread, axis=0)
+    tail = None
+    if stacked.tail is not None:
+        t = stacked.tail
+        top = jnp.moveaxis(t.top, 0, -2)
+        tail = Tail(jnp.sum(t.count, axis=0), jnp.sum(t.abs_sum, axis=0),
+                    jnp.sum(t.sq_sum, axis=0), jnp.sum(t.nonzero, axis=0),
+                    largest(jnp.reshape(top, top.shape[:-2] + (-1,)), -1))
+    return Moments(count, mean, m2, tail)
 
 
 def empty_moments(shape: tuple[int, ...], dtype) -> Moments:
@@ -296,9 +297,10 @@ _LANE = 128
 
 
 def block_moments(y: jax.Array, valid: jax.Array, with_tail: bool = True) -> Moments:
-    """Moments of one block of values `(n, ...)` (rows where `valid`) by a two-level
-    reduction: lanes of 128 rows, then a balanced tree (`merge_all`); without their `Tail`
-    unless `with_tail` (a caller that holds many blocks finds their largest values at once)."""
+    """Moments of one block of values `(n, ...)` (rows where `valid`) in two passes, each sum
+    over lanes of 128 rows and then across them (float32 stays accurate over a block);
+    without their `Tail` unless `with_tail` (a caller that holds many blocks finds their
+    largest values at once)."""
     block = y.shape[0]
     lane = min(_LANE, block)
     rows = -(-block // lane)
@@ -306,14 +308,14 @@ def block_moments(y: jax.Array, valid: jax.Array, with_tail: bool = True) -> Mom
         pad = rows * lane - block
         y = jnp.concatenate([y, jnp.zeros((pad,) + y.shape[1:], y.dtype)])
         valid = jnp.concatenate([valid, jnp.zeros(pad, bool)])
-    y2 = y.reshape((rows, lane) + y.shape[1:])
-    v2 = valid.reshape(rows, lane)
-    mask = v2.reshape(v2.shape + (1,) * (y.ndim - 1)).astype(y.dtype)
-    count = jnp.sum(v2, axis=1).astype(y.dtype)
-    safe = jnp.maximum(count, 1).reshape((rows,) + (1,) * (y.ndim - 1))
-    mean = jnp.sum(y2 * mask, axis=1) / safe
-    m2 = jnp.sum(mask * (y2 - mean[:, None]) ** 2, axis=1)
-    m = merge_all(Moments(count, mean, m2))
+    mask = jnp.reshape(valid, valid.shape + (1,) * (y.ndim - 1)).astype(y.dtype)
+
+    def total(a):  # sum over rows, lane by lane
+        return jnp.sum(jnp.sum(jnp.reshape(a, (rows, lane) + a.shape[1:]), axis=1), axis=0)
+
+    count = jnp.sum(valid).astype(y.dtype)
+    mean = total(y * mask) / jnp.maximum(count, 1)
+    m = Moments(count, mean, total(mask * (y - mean) ** 2))
     return m._replace(tail=tail_of(y, valid)) if with_tail else m
 
 

@@ -11,6 +11,7 @@
 | `integrate` | streaming driver with tolerances, chunks and devices; `method="auto"` picks by a pilot (`IntegrationEstimate`, `Pilot`) |
 """
 
+from ._auto._pilot import Pilot as Pilot
 from ._estimators._basic import importance as importance, uniform as uniform
 from ._estimators._control import antithetic as antithetic, control_variate as control_variate
 from ._estimators._integrate import (
@@ -18,7 +19,6 @@ from ._estimators._integrate import (
     integrate as integrate,
 )
 from ._estimators._mis import mis as mis, mis_one_sample as mis_one_sample
-from ._estimators._pilot_record import Pilot as Pilot
 from ._estimators._qmc import QMCEstimate as QMCEstimate, randomized_qmc as randomized_qmc
 from ._estimators._stratified import stratified as stratified
 

@@ -15,7 +15,7 @@ import jax
 
 
 PROBE_FAILED = 3
-METHODS = ("plain", "qmc", "adaptive", "auto")
+METHODS = ("plain", "qmc", "adaptive", "importance", "auto")
 
 
 def main(port: int, processes: int, index: int) -> None:
@@ -38,7 +38,7 @@ def main(port: int, processes: int, index: int) -> None:
 
     import jaxmc
 
-    def f(x):  # a ridge along the diagonal: method="auto" picks the mixture seeded from the grid
+    def f(x):  # a ridge along the diagonal
         y = x - 0.5
         return jnp.exp(-500.0 * (jnp.sum(y**2) - jnp.sum(y) ** 2 / 3) - 10.0 * jnp.sum(y) ** 2)
 

@@ -1,4 +1,4 @@
-"""A trained grid's bins bent to a singularity on a face (`_edged_grid`, `"grid_qmc"`)."""
+"""A trained grid's bins bent to a singularity on a face (`EdgedGrid`, `GridQMC`'s map)."""
 
 import jax
 import jax.numpy as jnp
@@ -6,30 +6,17 @@ import numpy as np
 import pytest
 
 import jaxmc
-from jaxmc._estimators._edged_grid import (
-    EDGE_OVERSHOOT,
-    EdgedGrid,
-    edge_powers,
-    edged,
-    edged_if_singular,
-)
-from jaxmc._estimators._pilot_nets import grid_net_values
+from jaxmc._auto._nets import mapped_net_values
+from jaxmc._methods._edged_grid import EDGE_OVERSHOOT, EdgedGrid, edge_powers, edged
 from jaxmc.proposals import Grid
 
-from .helpers import assert_eager_method_honest, auto_against, box
+from .helpers import assert_unbiased_and_honest, auto_against, box
 
 
 def face_singular(x):
     """x_0^(-1/2) (1 - x_1)^(-1/2) / 4: singular on the lower face of axis 0 and the upper
     face of axis 1; its integral over the unit square is 1."""
     return 0.25 / jnp.sqrt(x[0] * (1 - x[1]))
-
-
-@pytest.fixture
-def without_corners(monkeypatch):
-    """`auto` with no search for a singular corner: the cube bent to one (`_corner`) serves
-    `face_singular` as well, and measures lower; without it the bent grid is what wins."""
-    monkeypatch.setattr("jaxmc._estimators._auto.seek_corner", lambda *a, **k: (0, None))
 
 
 def _power_law_grid(dtype=jnp.float64):
@@ -51,7 +38,7 @@ def test_edge_powers_read_the_law_of_the_edges():
     np.testing.assert_array_equal(high, [1.0, 1.0])
     # An even grid, or one with no law at its faces, is left as it is.
     even = Grid(*box(2), bins=256)
-    assert not bool(edged(even).powered) and edged_if_singular(even) is even
+    assert not bool(edged(even).powered)
 
 
 @pytest.mark.parametrize("dtype, rtol", [(jnp.float64, 1e-8), (jnp.float32, 2e-3)])
@@ -76,7 +63,7 @@ def test_the_edged_map_has_the_density_it_reports(dtype, rtol):
 
 
 def _trained(f, d, key=0):
-    from jaxmc._estimators._adaptive import train_vegas_plus, uniform_grid
+    from jaxmc._stream._rounds import train_vegas_plus, uniform_grid
 
     lo, hi = box(d)
     return train_vegas_plus(jax.random.key(key), f, uniform_grid(lo, hi, bins=256), 10, 2048,
@@ -98,7 +85,7 @@ def test_a_trained_grid_is_bent_at_its_singular_faces_only():
     high = np.asarray(grid.high)
     assert 1.6 < high[2] / EDGE_OVERSHOOT < 2.2 and np.all(high[[0, 1, 3]] == 1), high
     peak = _trained(lambda x: jnp.exp(-jnp.sum((x - 0.5) ** 2) / 0.02), 4)
-    assert edged_if_singular(peak) is peak
+    assert not bool(edged(peak).powered)
 
 
 def test_values_through_the_bent_grid_are_bounded():
@@ -110,7 +97,7 @@ def test_values_through_the_bent_grid_are_bounded():
     trained = _trained(face_singular, 2)
     spread = {}
     for name, grid in (("grid", trained), ("bent", edged(trained))):
-        y = grid_net_values(jax.random.key(3), grid, face_singular, False, 15)
+        y = mapped_net_values(jax.random.key(3), grid, face_singular, False, 15)
         flat = jnp.reshape(y, (-1,))
         spread[name] = float(jnp.var(jnp.mean(y, axis=1)))
         k_hat = float(pareto_k(tail_of(flat)))
@@ -121,61 +108,33 @@ def test_values_through_the_bent_grid_are_bounded():
     assert spread["bent"] < spread["grid"] / 1000, spread
 
 
-def test_a_bent_grids_capped_values_are_no_tail():
-    # On a few thousand values the bins' skew reads as a power-law tail; through a bent grid
-    # (`edged`) values that reach a cap are taken as bounded, and QMC through it stays a
-    # candidate. Values that go on growing stay a tail, bent or not.
-    from jaxmc._estimators._pilot_grid import _grid_qmc_figures
-    from jaxmc._estimators._pilot_nets import QMC_REPLICAS, measure_nets
-
-    m = 512
-    rng = np.random.default_rng(1)
-    tail = (1 - rng.uniform(size=(QMC_REPLICAS, m))) ** -0.5
-    capped = np.minimum(tail, np.quantile(tail, 0.999))  # (the largest 5 equal)
-    for values, bounded in ((capped, True), (tail, False)):
-        y = jnp.asarray(values)
-        assert bool(measure_nets(y, 4.0, jnp.inf).heavy)
-        for bent in (False, True):
-            figures = _grid_qmc_figures(y, jnp.asarray(bent), growth=4.0)
-            assert bool(figures.heavy) == (not (bent and bounded)), (bounded, bent)
-            assert np.isinf(figures.variance) == bool(figures.heavy)
-
-
-def test_auto_takes_the_bent_grid_on_a_face_singularity(without_corners):
+def test_auto_takes_the_bent_grid_on_a_face_singularity():
     # QMC through the bent grid, 10x and more below the refining grid's error
     # (`method="adaptive"`) on the same budget, each within 5 of its standard errors.
     rms, _ = auto_against(face_singular, 1.0, *box(2), 2**17, "grid_qmc", "adaptive")
     assert rms["auto"] < rms["adaptive"] / 10, rms
 
 
-def test_the_bent_stream_is_unbiased_and_honest(without_corners):
-    # Over 48 keys, all of which take it: the replicas' spread is an unbiased estimate of the
-    # variance (no tail the replicas miss together).
-    keys = range(100, 148)
-    assert_eager_method_honest(face_singular, 1.0, *box(2), 2**15, "grid_qmc", keys, least=48)
-
-
-def test_the_bent_grid_under_jit_and_in_float32(without_corners):
-    # Under jit the grid is bent as eagerly (its powers traced, the branch compiled): the
-    # same choice and estimate. In float32 (singular on the lower faces, which it resolves:
-    # `edge_powers`) the estimate is within 5 of its standard errors.
+def test_the_bent_stream_is_unbiased_and_honest():
+    # QMC through the bent grid (a plan: the grid trained once), over 64 keys: the replicas'
+    # spread is an unbiased estimate of the variance (no tail the replicas miss together).
     lo, hi = box(2)
+    plan = jaxmc.methods.GridQMC(_trained(face_singular, 2))
+    assert bool(edged(plan.grid).powered)
+    keys = jax.random.split(jax.random.key(100), 64)
+    runs = jax.jit(jax.vmap(lambda k: jaxmc.integrate(k, face_singular, lo, hi, n=2**15,
+                                                      method=plan)))(keys)
+    assert_unbiased_and_honest(runs, 1.0)
+
+
+def test_the_bent_grid_in_one_dimension_and_in_float32():
+    # Scalar bounds: a 1-D grid, bent as well. In float32 (singular on the lower faces, which
+    # it resolves: `edge_powers`) the estimate is within 5 of its standard errors.
     n = 2**16
-    eager = jaxmc.integrate(jax.random.key(7), face_singular, lo, hi, n=n)
-    traced = jax.jit(lambda k: jaxmc.integrate(k, face_singular, lo, hi, n=n))(jax.random.key(7))
-    assert eager.method == "grid_qmc"
-    assert traced.pilot.candidates[int(traced.pilot.choice)] == "grid_qmc"
-    # (An eager pilot may spend the ridge probe's evaluations, which a stream of whole nets
-    # may absorb: then the streams are one, and so are the estimates.)
-    streamed = [int(e.n) - sum(e.pilot.evaluations) for e in (eager, traced)]
-    assert streamed[0] == streamed[1], streamed
-    np.testing.assert_allclose(traced.mean, eager.mean, rtol=1e-12)
-    assert abs(float(traced.mean) - 1) < 5 * float(traced.stderr)
-    # Scalar bounds: a 1-D grid, bent as well.
     line = jaxmc.integrate(jax.random.key(7), lambda x: 0.5 / jnp.sqrt(x), 0.0, 1.0, n=n)
     assert line.method == "grid_qmc" and line.mean.shape == (), line.pilot
     assert abs(float(line.mean) - 1) < 5 * float(line.stderr)
-    lo32, hi32 = (b.astype(jnp.float32) for b in (lo, hi))
+    lo32, hi32 = (b.astype(jnp.float32) for b in box(2))
     lower_faces = lambda x: 0.25 / jnp.sqrt(x[0] * x[1])  # noqa: E731
     single = jaxmc.integrate(jax.random.key(7), lower_faces, lo32, hi32, n=n)
     assert single.method == "grid_qmc" and single.mean.dtype == jnp.float32, single.pilot

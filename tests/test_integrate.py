@@ -35,7 +35,7 @@ def test_tolerance_checks_start_small_whatever_the_chunk():
     # is walked in small steps: at the default max_n (2^30) the first check once came after
     # a whole chunk, 2^18 evaluations. The run stops when two checks in a row pass; they fall
     # at the same nets for any chunk.
-    from jaxmc._estimators._plan import QMC_PASSES_TO_STOP
+    from jaxmc._stream._sizes import QMC_PASSES_TO_STOP
 
     assert QMC_PASSES_TO_STOP == 2
     f = lambda x: jnp.exp(-jnp.sum(x**2))
@@ -56,7 +56,7 @@ def test_tolerance_checks_start_small_whatever_the_chunk():
 def test_block_means_meet_a_tolerance_from_sixteen_blocks_on():
     # Stratified blocks (25^3 points in 3-D) are units of one degree of freedom each: a loose
     # tolerance stops the run at the sixteenth, not at the second nor after a whole chunk.
-    from jaxmc._estimators._plan import MIN_BLOCKS_TO_STOP
+    from jaxmc._stream._sizes import MIN_BLOCKS_TO_STOP
 
     assert MIN_BLOCKS_TO_STOP == 16
     est = jaxmc.integrate(jax.random.key(1), F, LO, HI, rtol=0.5, method="stratified")

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxmc
-from jaxmc._estimators._mode_search import (
+from jaxmc._auto._mixture import truncated_integral
+from jaxmc._auto._modes import (
     MAX_SHARE,
     differentiable,
     find_modes,
@@ -16,8 +17,7 @@ from jaxmc._estimators._mode_search import (
     search_evaluations,
     with_modes,
 )
-from jaxmc._estimators._pilot_mixture import truncated_integral
-from jaxmc._estimators._seeded_mixture import MIXTURE_COMPONENTS
+from jaxmc._methods._seeded_mixture import MIXTURE_COMPONENTS
 from jaxmc.proposals import GaussianMixture, Grid, Mixture
 
 from .helpers import box, peak
@@ -51,13 +51,12 @@ def test_auto_finds_the_mode_its_grid_missed():
     lo, hi = box(16)
     for seed in (1, 3, 8, 18, 106):
         est = jaxmc.integrate(jax.random.key(seed), f, lo, hi, n=100_000)
-        assert est.method == "mixture", est.pilot
-        assert est.pilot.cost[1] == est.pilot.cost[2] == np.inf, est.pilot
         assert abs(float(est.mean) - exact) < 5 * float(est.stderr), (seed, est.mean, est.stderr)
         assert float(est.stderr) < 0.01 * exact  # a tight error bar, not one widened to cover
-        # The search's evaluations count, in the mixture's: 2^11 points measured it.
-        assert est.pilot.evaluations[3] == 2**11 + search_evaluations(16), est.pilot
         assert int(est.n) <= 100_000
+        # The grid misses a mode the mixture holds: neither it nor QMC through it competes.
+        assert bool(est.pilot.stages[3]), est.pilot
+        assert est.pilot.variance[1] == est.pilot.variance[2] == np.inf, est.pilot
 
 
 def test_a_mode_is_judged_against_an_integral_no_single_weight_inflates():
@@ -157,7 +156,10 @@ def test_an_integrand_jax_cannot_differentiate_skips_the_search():
     f = peak(2, s=0.03)
     lo, hi = box(2)
     assert differentiable(f, False, lo) and not differentiable(_looped(f), False, lo)
-    est = jaxmc.integrate(jax.random.key(0), _looped(f), lo, hi, n=2**15)
-    assert est.pilot.candidates[-1] == "mixture", est.pilot  # the mixture was measured...
-    assert est.pilot.evaluations[-1] == 2**9, est.pilot  # ...on its 2^9 points alone
-    assert abs(float(est.mean) - 1) < 5 * float(est.stderr)
+    looped = jaxmc.integrate(jax.random.key(0), _looped(f), lo, hi, n=2**15)
+    searched = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=2**15)
+    # Both measured the mixture; only the differentiable one paid for the search.
+    assert bool(looped.pilot.stages[3]) and bool(searched.pilot.stages[3]), looped.pilot
+    spent = int(searched.pilot.evaluations) - int(looped.pilot.evaluations)
+    assert spent == search_evaluations(2), (searched.pilot, looped.pilot)
+    assert abs(float(looped.mean) - 1) < 5 * float(looped.stderr)

@@ -21,6 +21,7 @@ PUBLIC_MODULES = (
     "jaxmc.distributions",
     "jaxmc.estimators",
     "jaxmc.fit",
+    "jaxmc.methods",
     "jaxmc.points",
     "jaxmc.proposals",
     "jaxmc.quad",

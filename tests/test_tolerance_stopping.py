@@ -26,49 +26,32 @@ VEGAS_EVALUATIONS = 1_500_000  # vegas 6 at rtol=1e-3 (10 iterations of 1.5e5 af
 POSTERIOR = posterior()
 
 
-@pytest.mark.parametrize("seed, grid_rounds", [(2, 2**14), (6, 2**14), (7, 2**14)])
-def test_auto_meets_a_tolerance_on_the_posterior_within_five_times_vegas(seed, grid_rounds):
+@pytest.mark.parametrize("seed", [2, 6, 7])
+def test_auto_meets_a_tolerance_on_the_posterior_within_five_times_vegas(seed):
     # Key 2 stopped at z = -3.3 on the grid's stream; key 6, before the mixture had its wide
     # Gaussian, never met the tolerance (its weights' Pareto k-hat 0.9, 1e9 evaluations).
     lo, hi = jnp.zeros(5), jnp.ones(5)
     est = jaxmc.integrate(jax.random.key(seed), POSTERIOR, lo, hi, rtol=1e-3,
                           max_n=5 * VEGAS_EVALUATIONS)
-    assert est.method == "mixture" and bool(est.converged), est.pilot
+    assert bool(est.converged), est.pilot
     assert float(est.stderr) <= 1e-3 * float(est.mean)
     assert abs(float(est.mean) - 1) < 3 * float(est.stderr), (est.mean, est.stderr)
-    # A probe's pilot, sized for PROBE_BUDGET, measured the mixture's variance per evaluation:
-    # on these keys it asked for more than PROBE_REACH times that budget, and the pilot was
-    # sized anew for max_n (its grid trained on rounds of 2^14; key 7's went on from the
-    # probe's, rounds of 2^11, before the grid refined on its bins' means; a probe's pilot
-    # that suffices: `test_a_loose_tolerance_sizes_auto_for_what_it_needs`).
-    assert est.pilot.evaluations[1] == 10 * grid_rounds, est.pilot
 
 
 def test_a_loose_tolerance_sizes_auto_for_what_it_needs():
-    # With only `rtol`, auto's pilot is first sized for PROBE_BUDGET evaluations, not for
-    # max_n (2^30 by default): the posterior at rtol=1e-2 took 0.33M evaluations when it was.
-    from jaxmc._estimators._plan import PROBE_BUDGET
+    # With only `rtol`, auto's pilot is sized for PROBE_BUDGET evaluations, not for max_n
+    # (2^30 by default): the posterior at rtol=1e-2 took 0.33M evaluations when it was.
+    from jaxmc._stream._sizes import PROBE_BUDGET
 
-    assert PROBE_BUDGET == 2**17
     est = jaxmc.integrate(jax.random.key(0), POSTERIOR, jnp.zeros(5), jnp.ones(5), rtol=1e-2)
-    assert est.method == "mixture" and bool(est.converged), est.pilot
-    # QMC on 8 nets of 2^10 (and the gradients of a search for a ridge, and rays of a search
-    # for a singular corner under the peak's tail, which found none), ten VEGAS+ rounds of
-    # 2^11, QMC through the grid on 8 nets of 2^10 and the mixture's 2^11 points (and the
-    # search for modes it missed).
-    from jaxmc._estimators._corner import corner_probe_evaluations
-    from jaxmc._estimators._mode_search import search_evaluations
-    from jaxmc._estimators._ridge import PROBE_EVALUATIONS
-
-    expected = (8 * 2**10 + PROBE_EVALUATIONS + corner_probe_evaluations(5), 10 * 2**11,
-                8 * 2**10, 2**11 + search_evaluations(5))
-    assert est.pilot.evaluations == expected, est.pilot
+    assert bool(est.converged), est.pilot
+    assert int(est.pilot.evaluations) < PROBE_BUDGET / 2, est.pilot
     assert int(est.n) < 100_000
     assert abs(float(est.mean) - 1) < 5 * float(est.stderr), (est.mean, est.stderr)
 
 
 def test_a_refit_gets_a_wide_gaussian_in_proportion_to_its_weights_spread():
-    from jaxmc._estimators._seeded_mixture import (
+    from jaxmc._methods._seeded_mixture import (
         WIDE_MAX_SHARE,
         WIDE_MIN_SHARE,
         WIDE_SCALE,

@@ -40,7 +40,7 @@ from .._progress import report
 from .._stats import Estimate, estimate_fields, rounding_floor
 from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
 from ..proposals import Grid
-from ._plan import BLOCK, MIN_BLOCKS_TO_STOP
+from ._sizes import BLOCK, MIN_BLOCKS_TO_STOP
 
 
 # Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).

@@ -1,4 +1,4 @@
-"""The static sizes of an `integrate` stream (`Plan`: blocks, replicas, loop steps, the
+"""The static sizes of an `integrate` stream (`Sizes`: blocks, replicas, loop steps, the
 small first steps of a tolerance run), the constants of its stopping rules, and the size of
 a tolerance run's probe."""
 
@@ -52,7 +52,7 @@ PROBE_REACH = 4
 ADAPTIVE_PROBE_REACH = 2
 
 
-class Plan(eqx.Module):
+class Sizes(eqx.Module):
     """Static sizes of a run."""
 
     method: str = eqx.field(static=True)
@@ -74,7 +74,7 @@ def final_net(budget: int, min_replicas: int = QMC_MIN_REPLICAS) -> int:
     return 1 << int(math.floor(math.log2(max(budget // min_replicas, 1))))
 
 
-def plan(
+def sizes(
     method: str,
     budget: int,
     chunk: int,
@@ -83,7 +83,7 @@ def plan(
     adaptive_block: int = 0,
     tolerant: bool = False,
     min_replicas: int = QMC_MIN_REPLICAS,
-) -> Plan:
+) -> Sizes:
     """The block size, block count and loop shape for `budget` evaluations.
 
     Randomised QMC with a fixed budget gives each replica the largest power of
@@ -141,7 +141,7 @@ def plan(
         per_step = replicas * (1 << int(math.floor(math.log2(rounds))))
     steps = -(-blocks // per_step)
     early = early_steps(per_step, devices, replicas) if tolerant else 1
-    return Plan(method, block, blocks, budget, per_step, steps, early, strata, replicas)
+    return Sizes(method, block, blocks, budget, per_step, steps, early, strata, replicas)
 
 
 def early_steps(per_step: int, devices: int, replicas: int) -> int:

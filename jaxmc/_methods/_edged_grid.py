@@ -45,7 +45,7 @@ from .._proposals._base import sum_last
 from ..proposals import Grid
 
 
-__all__ = ["BENT_REPLICAS", "EdgedGrid", "edge_powers", "edged", "edged_if_singular"]
+__all__ = ["BENT_REPLICAS", "EdgedGrid", "edge_powers", "edged"]
 
 EDGE_FIT = (2, 16)  # the edges from each face, first and last, whose slope gives p
 EDGE_MIN_POWER = 1.2  # a slope below this is no singularity (a <= 1/6): the bin stays linear
@@ -205,12 +205,3 @@ def edged(grid: Grid) -> EdgedGrid:
     """The trained `grid` bent at the faces where it follows a singularity (`edge_powers`),
     for QMC through it: an `EdgedGrid` (`powered` says whether any face is bent)."""
     return EdgedGrid(grid, *edge_powers(grid))
-
-
-def edged_if_singular(grid: Grid) -> Grid | EdgedGrid:
-    """`edged`; outside `jit`, the grid itself where no face is bent (its own programs, as
-    before the faces were read)."""
-    bent = edged(grid)
-    if is_concrete(bent.powered) and not bool(bent.powered):
-        return grid
-    return bent

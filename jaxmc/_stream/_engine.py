@@ -77,7 +77,7 @@ from .._stats import (
     merge_all,
     tail_of,
 )
-from ._plan import MIN_BLOCKS_TO_STOP, QMC_PASSES_TO_STOP
+from ._sizes import MIN_BLOCKS_TO_STOP, QMC_PASSES_TO_STOP
 
 
 def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
@@ -143,45 +143,45 @@ def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate
 
 
 @partial(eqx.filter_jit)
-def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress, batched):
-    """Evaluate `plan.blocks` blocks (or fewer, once a tolerance is met) and reduce them."""
-    method = plan.method
+def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progress, batched):
+    """Evaluate `sizes.blocks` blocks (or fewer, once a tolerance is met) and reduce them."""
+    method = sizes.method
     d = 1 if lo.ndim == 0 else lo.shape[0]
     dtype = lo.dtype
     volume = jnp.prod(hi - lo)
     per_sample = method in ("plain", "importance")
-    bar_total = None if tolerant else plan.budget  # (a tolerance may stop it anywhere)
+    bar_total = None if tolerant else sizes.budget  # (a tolerance may stop it anywhere)
     if method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
-            jax.random.split(key, plan.replicas)
+            jax.random.split(key, sizes.replicas)
         )
-        log2_block = plan.block.bit_length() - 1
+        log2_block = sizes.block.bit_length() - 1
 
     def points_of_block(b):
         """The block's points `x` and their density `p(x)`."""
         if method == "importance":  # from the frozen proposal
-            return frozen.sample(jax.random.fold_in(key, b), plan.block)
+            return frozen.sample(jax.random.fold_in(key, b), sizes.block)
         if method == "qmc":
-            r, position = b % plan.replicas, b // plan.replicas
+            r, position = b % sizes.replicas, b // sizes.replicas
             u = replica_points((scrambles[0][r], scrambles[1][r]), position, log2_block, dtype)
             if frozen is not None:  # scrambled nets through a trained grid's map
                 x, log_p = frozen.map(u)
                 return (x if frozen.event_ndim else x[:, 0]), jnp.exp(log_p)
         elif method == "plain":
-            u = unit_points("uniform", jax.random.fold_in(key, b), plan.block, d, dtype=dtype)
+            u = unit_points("uniform", jax.random.fold_in(key, b), sizes.block, d, dtype=dtype)
         else:
             # Drawn in the default float dtype, then cast: this keeps the numbers of earlier
             # versions for float32 bounds under x64 (a float32 draw truncates, not rounds).
             u = unit_points(
-                "stratified", jax.random.fold_in(key, b), plan.block, d, counts=plan.strata
+                "stratified", jax.random.fold_in(key, b), sizes.block, d, counts=sizes.strata
             ).astype(dtype)
         x = to_box(u if lo.ndim else u[:, 0], lo, hi)
-        return x, jnp.broadcast_to(1.0 / volume, (plan.block,))
+        return x, jnp.broadcast_to(1.0 / volume, (sizes.block,))
 
     def moments_of_block(b, inside):
         if method == "adaptive":
             m, evaluations, bad = _vegas_plus_block(
-                jax.random.fold_in(key, b), frozen, plan.block, f, batched
+                jax.random.fold_in(key, b), frozen, sizes.block, f, batched
             )
             # Slots past the budget (the last step's spare ones) are dropped.
             m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
@@ -189,8 +189,8 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         x, px = points_of_block(b)
         fx = evaluate(f, x, batched)
         y, bad = ratio(fx, px)
-        index = b * plan.block + jnp.arange(plan.block)
-        valid = (index < plan.budget) & inside
+        index = b * sizes.block + jnp.arange(sizes.block)
+        valid = (index < sizes.budget) & inside
         m = block_moments(y, valid, with_tail=False)  # the step's tail comes from all its blocks
         if not per_sample:
             # The block is one randomisation: one observation, its mean.
@@ -198,8 +198,8 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             m = Moments(unit, m.mean, jnp.zeros_like(m.m2), m.tail)
         if method == "qmc":
             # Its replica's running mean weighs it by its points.
-            m = _one_hot_moments(m._replace(count=m.count * plan.block), b % plan.replicas,
-                                 plan.replicas)
+            m = _one_hot_moments(m._replace(count=m.count * sizes.block), b % sizes.replicas,
+                                 sizes.replicas)
         evaluations = jnp.sum(valid, dtype=jnp.int32)
         return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
 
@@ -208,7 +208,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         per_device = -(-per_step // mesh.size)
         slot = device * per_device + jnp.arange(per_device, dtype=jnp.int32)
         blocks = t * per_step + slot
-        inside = (slot < per_step) & (blocks < plan.blocks)
+        inside = (slot < per_step) & (blocks < sizes.blocks)
         m, evaluations, bad, values = jax.vmap(moments_of_block)(blocks, inside)
         m = merge_all(m)
         if values is not None:
@@ -225,7 +225,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         one = partial(local, per_step=per_step)
         return partial(one, device=0) if mesh.size == 1 else partial(_across_devices, one, mesh)
 
-    start = _empty_like(jax.eval_shape(lambda: local(jnp.int32(0), 0, plan.per_step)[0]))
+    start = _empty_like(jax.eval_shape(lambda: local(jnp.int32(0), 0, sizes.per_step)[0]))
     zero = jnp.zeros((), jnp.int32)
     start, zero = jax.tree.map(partial(_carry_typed, mesh=mesh), (start, zero))
 
@@ -234,13 +234,13 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
         m, e, b = run_step(t)
         carry = (merge(total, m), evaluations + e, bad + b)
         if progress:
-            _report(stream_estimate(*carry, plan.replicas), bar_total, mesh, last=False)
+            _report(stream_estimate(*carry, sizes.replicas), bar_total, mesh, last=False)
         return carry
 
     if not tolerant:
-        whole = sharded(plan.per_step)
+        whole = sharded(sizes.per_step)
         carry, _ = jax.lax.scan(
-            lambda c, t: (step(whole, c, t), None), (start, zero, zero), jnp.arange(plan.steps)
+            lambda c, t: (step(whole, c, t), None), (start, zero, zero), jnp.arange(sizes.steps)
         )
     else:
 
@@ -250,11 +250,11 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             (two samples, or MIN_BLOCKS_TO_STOP block means: an early step may be one block);
             QMC only at powers of two per replica (whole nets), i.e. after 1, 2, 4, ... steps
             (each a power of two of rounds)."""
-            if plan.replicas == 1:
+            if sizes.replicas == 1:
                 at_check = carry[0].count >= (2 if per_sample else MIN_BLOCKS_TO_STOP)
             else:
                 at_check = (t >= 1) & ((t & (t - 1)) == 0)
-            est = stream_estimate(*carry, plan.replicas)
+            est = stream_estimate(*carry, sizes.replicas)
             met = est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean))
             # A variance outside its dtype's range stays there (an overflowed sum of squares
             # does not come back): no budget meets the tolerance, as at the rounding floor.
@@ -270,7 +270,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
             low stopped runs early and low (a 4-D camel at rtol=1e-3: 4 of 40 keys beyond 3
             sigma)."""
             run_step = sharded(per_step)
-            once = plan.replicas == 1 or QMC_PASSES_TO_STOP == 1
+            once = sizes.replicas == 1 or QMC_PASSES_TO_STOP == 1
 
             def cond(state):
                 t, _, (last, before) = state
@@ -285,14 +285,14 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, plan, mesh, tolerant, progress
 
         no = _carry_typed(jnp.zeros((), bool), mesh)
         state = (zero, (start, zero, zero), (no, no))
-        if plan.early_steps > 1:
+        if sizes.early_steps > 1:
             # The first step's blocks in smaller steps (the same blocks, the same points);
             # after them the whole steps go on from the second, its checks again at 2, 4,
             # ... whole steps.
-            _, carry, checks = walk(state, plan.per_step // plan.early_steps, plan.early_steps)
+            _, carry, checks = walk(state, sizes.per_step // sizes.early_steps, sizes.early_steps)
             state = (zero + 1, carry, checks)
-        _, carry, _ = walk(state, plan.per_step, plan.steps)
-    est = stream_estimate(*carry, plan.replicas)
+        _, carry, _ = walk(state, sizes.per_step, sizes.steps)
+    est = stream_estimate(*carry, sizes.replicas)
     if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
         _report(est, bar_total, mesh, last=True)
     return est

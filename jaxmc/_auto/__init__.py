@@ -1,0 +1,1 @@
+"""`Auto`: the race of candidate methods on a pilot (`jaxmc.methods.Auto`)."""

@@ -1,0 +1,65 @@
+r"""The grid's stage of `Auto`'s pilot, measured: the trained VEGAS+ grid's last rounds
+(`adaptive_figure`) and QMC's nets carried through its map (`grid_qmc_figure`)."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import polygamma
+
+from .._diagnostics import bounded_variance, tail_of
+from .._integrand import ratio
+from .._methods._edged_grid import edged
+from ._figures import MIN_ESS_SHARE, Figure, blind, effective_points, iid_figure, relative_variance
+from ._nets import REPLICAS, credited, mapped_net_values, qmc_figure
+
+
+# The training rounds whose means' scatter checks the last round's own variance.
+SCATTER_ROUNDS = 5
+
+
+@partial(jax.jit, static_argnames="round_size")
+def adaptive_figure(parts, samples, z, *, round_size) -> tuple[Figure, jax.Array]:
+    r"""The trained grid's figure from its training rounds' estimates `parts` and the last
+    round's `samples`: `(Figure, whether its values f/q have a power-law tail)`.
+
+    The figure is the last round's variance (its i.i.d. bound under a power-law tail, as the
+    stream reports it there), times its points. That variance comes from pairs of points in
+    hypercubes, which a peak the grid has not yet resolved inflates; the scatter of the last
+    `SCATTER_ROUNDS` rounds' means is a second estimate, with 4 degrees of freedom: the
+    figure is kept at most at the scatter's bound `z` standard deviations above it (the
+    logarithm of a $\chi^2_4$ variable has variance $\psi'(2)$). Its logarithm's standard
+    deviation is the last round's values' (`iid_figure`)."""
+    values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
+    tail = tail_of(values)
+    variance, _ = bounded_variance(parts.variance[-1], parts.mean[-1], tail)
+    v_last = relative_variance(parts.mean[-1], variance) * round_size
+    recent = parts.mean[-SCATTER_ROUNDS:]
+    centre = jnp.mean(recent, axis=0)
+    v_scatter = relative_variance(centre, jnp.var(recent, axis=0, ddof=1)) * round_size
+    k = SCATTER_ROUNDS - 1
+    cap = v_scatter * jnp.exp(z * jnp.sqrt(polygamma(1, k / 2.0)))
+    seen = jnp.any(parts.mean[-1] != 0)
+    own, heavy = iid_figure(values)
+    return Figure(jnp.where(seen, jnp.minimum(v_last, cap), jnp.inf), own.log_sd), heavy
+
+
+def grid_qmc_values(key, grid, f, batched, log2_size):
+    """QMC's pilot nets through the trained `grid`'s map, bent at the faces where it follows
+    a singularity (`EdgedGrid`), as `GridQMC` streams."""
+    return mapped_net_values(key, edged(grid), f, batched, log2_size)
+
+
+@partial(jax.jit, static_argnames="growth")
+def grid_qmc_figure(y, *, growth) -> Figure:
+    """QMC's figure through the grid, from its nets' values `y` `(R, m, ...)` (as QMC's own,
+    `qmc_figure`, projected `growth`-fold): no candidate where the values saw nothing or
+    have fewer effective points than `MIN_ESS_SHARE` of their number (a loose fit)."""
+    flat = jnp.reshape(y, (-1,) + y.shape[2:])
+    plain, heavy = iid_figure(flat)
+    figure = credited(qmc_figure(y, growth), plain, heavy)
+    loose = effective_points(flat) < MIN_ESS_SHARE * flat.shape[0]
+    unfit = loose | blind(flat, REPLICAS)
+    return Figure(jnp.where(unfit, jnp.inf, figure.value), figure.log_sd)

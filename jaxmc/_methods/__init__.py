@@ -1,0 +1,1 @@
+"""The methods `integrate` streams with, as objects (`jaxmc.methods`)."""
