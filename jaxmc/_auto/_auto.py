@@ -160,11 +160,13 @@ class _Look(eqx.Module):
 
 @partial(jax.jit, static_argnames=("growth", "growth_after", "price", "z", "costs"))
 def _look(y, bins, *, growth, growth_after, price, z, costs):
-    """QMC's pilot nets measured, and whether the grid's stage is worth running."""
-    nets = nets_figures(y, bins, growth)
-    after = nets_figures(y, bins, growth_after).qmc
+    """QMC's pilot nets measured (QMC projected to the stream's nets after this stage and
+    after the grid's), and whether the grid's stage is worth running."""
+    both = nets_figures(y, bins, (growth, growth_after))
+    nets, after = (eqx.tree_at(lambda n: n.qmc, both, jax.tree.map(lambda a: a[k], both.qmc))
+                   for k in (0, 1))
     go_on = grid_can_win(nets, np.asarray(costs, y.dtype), price, z)
-    return _Look(nets, after, pooled_any(go_on))
+    return _Look(nets, after.qmc, pooled_any(go_on))
 
 
 @jax.jit

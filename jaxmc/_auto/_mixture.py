@@ -13,11 +13,11 @@ from __future__ import annotations
 import math
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from .._box import to_box
+from .._compiled import per_integrand
 from .._methods._seeded_mixture import (
     fit_points,
     importance_weights,
@@ -46,7 +46,7 @@ def mixture_outlook(grid, samples):
     return mixture, jnp.maximum(second / jnp.maximum(integral**2, tiny) - 1, 0)
 
 
-@eqx.filter_jit
+@per_integrand
 def _modes(qmc_key, lo, hi, early, *, f, batched):
     """The modes near the QMC pilot's best points (`find_modes`; `early`: its early look's
     values, on the pilot's first nets), or `None` where JAX cannot differentiate `f`

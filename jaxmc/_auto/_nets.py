@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._box import to_box
-from .._diagnostics import power_law_tail, tail_of
+from .._compiled import per_integrand
 from .._integrand import evaluate, ratio
 from .._points._sobol import sobol_scramble
 from .._stream._engine import replica_points
@@ -63,7 +63,7 @@ def _bins(u):
     return jnp.clip(jnp.floor(u * OUTLOOK_BINS), 0, OUTLOOK_BINS - 1).astype(jnp.int8)
 
 
-@eqx.filter_jit
+@per_integrand
 def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
     """Integrand values $f/p$ `(REPLICAS, blocks * 2**log2_block, ...)` on the pilot's nets
     (`_net_units` in the box), and each point's bin on each axis `(..., d)`."""
@@ -78,7 +78,7 @@ def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
     return jax.vmap(replica)(u), _bins(u)
 
 
-@eqx.filter_jit
+@per_integrand
 def mapped_net_values(key, density, f, batched, log2_size):
     r"""The values $f/q$ `(REPLICAS, 2**log2_size, ...)` of whole nets carried through a
     map `density` (a trained grid's: $x = G(u)$, $q$ its density)."""
@@ -92,9 +92,10 @@ def mapped_net_values(key, density, f, batched, log2_size):
     return jax.vmap(replica)(u)
 
 
-def _replica_figures(y, growth):
-    """The relative variance per evaluation of the means of replicas `y` `(R, m, ...)` at nets
-    of `m/8 .. m` points, the fitted rate and the figure projected `growth`-fold larger."""
+def _replica_figures(y, growths):
+    """The logarithm of QMC's relative variance per evaluation from the means of replicas `y`
+    `(R, m, ...)`, projected `growths`-fold beyond nets of `m` points (one per growth) at the
+    rate fitted across nets of `m/8 .. m` points."""
     replicas, per_replica = y.shape[:2]
     sizes = [per_replica >> k for k in (3, 2, 1, 0)]
 
@@ -107,28 +108,30 @@ def _replica_figures(y, growth):
     doublings = jnp.arange(len(sizes), dtype=by_size.dtype) - (len(sizes) - 1) / 2
     rate = -jnp.sum(doublings * by_size) / jnp.sum(doublings**2)
     rate = jnp.clip(jnp.where(jnp.isfinite(rate), rate, 0.0), 0.0, MAX_QMC_RATE)
-    return by_size[-1] * math.log(2) - rate * math.log(growth)
+    return by_size[-1] * math.log(2) - rate * np.log(np.asarray(growths, float))
 
 
-def qmc_figure(y, growth) -> Figure:
-    r"""QMC's figure from replicas `y` `(R, m, ...)`: projected `growth`-fold, its logarithm's
-    standard deviation by the jackknife over the replicas,
-    $\sqrt{\frac{R-1}{R}\sum_i(\theta_{(i)} - \bar\theta)^2}$ (each $\theta_{(i)}$ the whole
-    projected figure without replica $i$)."""
+def qmc_figure(y, growths) -> Figure:
+    r"""QMC's figure from replicas `y` `(R, m, ...)`, projected `growths`-fold (a number, or a
+    tuple: then one figure per growth, stacked): its logarithm's standard deviation by the
+    jackknife over the replicas, $\sqrt{\frac{R-1}{R}\sum_i(\theta_{(i)} - \bar\theta)^2}$
+    (each $\theta_{(i)}$ the whole projected figure without replica $i$)."""
     replicas = y.shape[0]
-    log_v = _replica_figures(y, growth)
+    log_v = _replica_figures(y, growths)
     others = np.array([[j for j in range(replicas) if j != i] for i in range(replicas)])
-    leave_one_out = jax.vmap(lambda rows: _replica_figures(y[rows], growth))(others)
-    spread = jnp.sum((leave_one_out - jnp.mean(leave_one_out)) ** 2) * (replicas - 1) / replicas
-    finite = jnp.isfinite(log_v) & jnp.all(jnp.isfinite(leave_one_out))
+    leave_one_out = jax.vmap(lambda rows: _replica_figures(y[rows], growths))(others)
+    centred = leave_one_out - jnp.mean(leave_one_out, axis=0)
+    spread = jnp.sum(centred**2, axis=0) * (replicas - 1) / replicas
+    finite = jnp.isfinite(log_v) & jnp.all(jnp.isfinite(leave_one_out), axis=0)
     return Figure(jnp.where(finite, jnp.exp(log_v), jnp.inf),
                   jnp.where(finite, jnp.sqrt(spread), jnp.inf))
 
 
 def nets_figures(y, bins, growth) -> NetFigures:
-    """`NetFigures` of the pilot's values `y` `(R, m, ...)` in `bins` (`net_values`). Under a
-    power-law tail QMC is credited with plain MC's variance (which its stream reports there,
-    `bounded_variance`), as is QMC through a density of the values it streams."""
+    """`NetFigures` of the pilot's values `y` `(R, m, ...)` in `bins` (`net_values`), QMC's
+    projected `growth`-fold (a tuple: stacked, one per growth). Under a power-law tail QMC is
+    credited with plain MC's variance (which its stream reports there, `bounded_variance`),
+    as is QMC through a density of the values it streams."""
     replicas = y.shape[0]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
     plain, heavy = iid_figure(flat)
@@ -140,11 +143,6 @@ def credited(qmc: Figure, plain: Figure, heavy) -> Figure:
     """QMC's figure where the values have a power-law tail: plain MC's, if larger."""
     value = jnp.where(heavy, jnp.maximum(qmc.value, plain.value), qmc.value)
     return Figure(value, jnp.where(heavy, jnp.inf, qmc.log_sd))
-
-
-def heavy_values(y) -> jax.Array:
-    """Whether values `y` `(R, m, ...)` have a power-law tail."""
-    return jnp.any(power_law_tail(tail_of(jnp.reshape(y, (-1,) + y.shape[2:]))))
 
 
 def product_outlook(bins, y) -> Figure:
@@ -173,38 +171,37 @@ def product_outlook(bins, y) -> Figure:
     tiny = jnp.finfo(square.dtype).tiny
     least = jnp.min(jnp.where(square > 0, square, jnp.inf))
     z = 0.5 * jnp.log(jnp.maximum(jnp.where(square > 0, square, least), tiny))
-    index = jnp.reshape(bins.astype(jnp.int32), (-1, d)) + OUTLOOK_BINS * jnp.arange(d)
+    # Each point's bin on each axis, one-hot `(n, d, bins)`: bins' sums and densities at the
+    # points are then products with it (where a scatter and a gather run serially on a CPU).
+    one_hot = jax.nn.one_hot(jnp.reshape(bins, (-1, d)), OUTLOOK_BINS, dtype=z.dtype)
     split = y.shape[0] // 2 * y.shape[1]
     halves = (slice(0, split), slice(split, None))
     mean_square = jnp.maximum(jnp.sum(jnp.mean(values, axis=0) ** 2), tiny)
-    counts = [c for c in (2, 4, 8, 16) if c <= OUTLOOK_BINS]
+    # Each coarser bin's sums, held by every one of the finest bins it covers.
+    pooling = np.stack([np.kron(np.eye(count), np.ones((OUTLOOK_BINS // count,) * 2))
+                        for count in (2, 4, 8, 16) if count <= OUTLOOK_BINS])
 
     def log_densities(fit):
         """`(configurations, d, OUTLOOK_BINS)` log densities fitted on the points `fit`."""
         parts = jnp.stack([z[fit], square[fit], jnp.ones_like(z[fit])])
-        sums = jnp.zeros((3, d * OUTLOOK_BINS), z.dtype).at[:, index[fit]].add(parts[:, :, None])
-        sums = jnp.reshape(sums, (3, d, OUTLOOK_BINS))
-        fits = []
-        for count in counts:
-            coarse = jnp.sum(jnp.reshape(sums, (3, d, count, -1)), axis=-1)
-            seen = coarse[2] > 0
-            mean_z, mean_square_bin = (coarse[k] / jnp.maximum(coarse[2], 1) for k in (0, 1))
-            for log_q in (mean_z, 0.5 * jnp.log(jnp.maximum(mean_square_bin, tiny))):
-                # An empty bin gets the axis' mean; every bin at least OUTLOOK_FLOOR of it.
-                log_q = jnp.where(seen, log_q, jnp.sum(jnp.where(seen, log_q, 0), axis=1,
-                                                       keepdims=True) / jnp.sum(seen, axis=1, keepdims=True))
-                log_q = log_q - jnp.max(log_q, axis=1, keepdims=True)
-                log_q = log_q - jnp.log(jnp.mean(jnp.exp(log_q), axis=1, keepdims=True))
-                log_q = jnp.maximum(log_q, math.log(OUTLOOK_FLOOR))
-                fits.append(jnp.repeat(log_q, OUTLOOK_BINS // count, axis=1))
-        return jnp.stack(fits)
+        sums = jnp.einsum("kn,ndb->kdb", parts, one_hot[fit])
+        pooled = jnp.einsum("kdb,cbe->ckde", sums, jnp.asarray(pooling, z.dtype))
+        seen = pooled[:, 2] > 0
+        mean_z, mean_square_bin = (pooled[:, k] / jnp.maximum(pooled[:, 2], 1) for k in (0, 1))
+        log_q = jnp.stack([mean_z, 0.5 * jnp.log(jnp.maximum(mean_square_bin, tiny))], axis=1)
+        seen = seen[:, None]
+        # An empty bin gets the axis' mean; every bin at least OUTLOOK_FLOOR of it.
+        filled = jnp.sum(jnp.where(seen, log_q, 0), axis=-1, keepdims=True) / jnp.maximum(
+            jnp.sum(seen, axis=-1, keepdims=True), 1)
+        log_q = jnp.where(seen, log_q, filled)
+        log_q = log_q - jnp.max(log_q, axis=-1, keepdims=True)
+        log_q = log_q - jnp.log(jnp.mean(jnp.exp(log_q), axis=-1, keepdims=True))
+        log_q = jnp.maximum(log_q, math.log(OUTLOOK_FLOOR))
+        return jnp.reshape(log_q, (-1, d, OUTLOOK_BINS))
 
     def read(fit, on):
         """Each configuration's mean of $|f|^2/q$ on the points `on`, and its variance."""
-        log_q = log_densities(fit)  # (C, d, B)
-        local = jnp.reshape(bins.astype(jnp.int32), (-1, d))[on]  # (n, d)
-        at = jnp.sum(jnp.take_along_axis(log_q[:, None], jnp.swapaxes(local, 0, 1)[None, None],
-                                         axis=-1)[:, 0], axis=1)  # (C, n)
+        at = jnp.einsum("ndb,cdb->cn", one_hot[on], log_densities(fit))  # log q at the points
         # (f = 0 adds 0 even where 1/q overflows, never NaN.)
         w = jnp.where(square[on] > 0, square[on] * jnp.exp(-at), 0)
         return jnp.mean(w, axis=1), jnp.var(w, axis=1) / w.shape[1]

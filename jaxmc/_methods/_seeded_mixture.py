@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._compiled import per_integrand
 from .._integrand import evaluate, ratio
 from ..proposals import GaussianMixture, Grid, Mixture
 
@@ -151,7 +152,7 @@ def _refit(mixture: Mixture, x, y) -> Mixture:
     return eqx.tree_at(lambda m: m.proposals[0], mixture, gm)
 
 
-@eqx.filter_jit
+@per_integrand
 def mixture_values(x, p, *, f, batched):
     """The values $f/p$ at points `x` of density `p` (the one program of the mixture's fits
     compiled for each integrand; the rest serve every integrand of their shapes)."""

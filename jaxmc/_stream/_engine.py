@@ -59,6 +59,7 @@ from jax.sharding import PartitionSpec
 
 from .. import _random
 from .._box import to_box
+from .._compiled import per_integrand
 from .._diagnostics import bounded_variance, stderr_floor, variance_out_of_range
 from .._fit._vegas import stratified_unit_points
 from .._integrand import evaluate, ratio
@@ -142,7 +143,7 @@ def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate
                                 dof=replicas - 1))
 
 
-@partial(eqx.filter_jit)
+@per_integrand
 def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progress, batched):
     """Evaluate `sizes.blocks` blocks (or fewer, once a tolerance is met) and reduce them."""
     method = sizes.method
@@ -320,7 +321,7 @@ def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **setti
     return _sharded_stream(args, settings)
 
 
-@eqx.filter_jit
+@per_integrand
 def _sharded_stream(args, settings):
     """`stream(*args, **settings)` under `shard_map` over `settings["mesh"]`, taking its arrays
     (those of the integrand's `args` among them) as arguments."""

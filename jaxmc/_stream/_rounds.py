@@ -33,6 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._compiled import per_integrand
 from .._diagnostics import pareto_k, tail_of
 from .._fit._vegas import strata_per_axis
 from .._integrand import ratio
@@ -44,7 +45,7 @@ from ._sizes import BLOCK, MIN_BLOCKS_TO_STOP
 
 
 # Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
-run_adaptation = eqx.filter_jit(_run_adaptation)
+run_adaptation = per_integrand(_run_adaptation)
 
 TRAINING_ROUNDS = 10  # VEGAS+ rounds that train the grid, at most (discarded)
 MAX_REFINE_ROUNDS = 32  # with a tolerance, adapting rounds after training; then a frozen stream
@@ -148,7 +149,7 @@ def tail_refining(budget: int, block: int) -> tuple[int, int]:
     return rounds, budget // rounds // 64 * 64
 
 
-@eqx.filter_jit
+@per_integrand
 def refine_finer(key, state, *, f, batched, rounds, size, progress=False):
     """`refine`'s rounds, all `rounds` of them of `size` points, from a trained `state`
     whose grid is first subdivided (`TAIL_GROWTH` times its bins, at most `MAX_TAIL_BINS`)
@@ -259,7 +260,7 @@ def _report_round(mean, stderr, done, last, *, total: int) -> None:
     report(mean, stderr, done, total=total, last=bool(last))
 
 
-@eqx.filter_jit
+@per_integrand
 def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=False):
     """Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, averaged (`average_rounds`).
 
