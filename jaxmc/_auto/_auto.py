@@ -192,12 +192,11 @@ class _MixtureStage(eqx.Module):
     draws: Any
 
 
-@partial(jax.jit, static_argnames=("costs", "stages", "search_n"))
-def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, *, costs, stages, search_n):
+@partial(jax.jit, static_argnames=("costs", "stages", "search_n", "rests"))
+def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, *, costs, stages, search_n, rests):
     """The candidates' figures, the winner and the pilot's record, from what ran: `(Pilot,
-    the stream to run)` (0: QMC after the early look, 1: after the nets, 2 + the winner
-    after the grid's stage). `grid`, `mixture`: the stages' results (`None` where they did
-    not run eagerly), with whether they ran."""
+    the evaluations left for the stream: `rests`' after the last stage that ran)`. `grid`,
+    `mixture`: the stages' results (`None` where they did not run eagerly)."""
     dtype = look.nets.plain.value.dtype
     figures = [look.nets.qmc]
     if grid is not None:
@@ -220,7 +219,8 @@ def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, *, costs, stages, 
         evaluations -= jnp.where(grid_on, search_n, 0)
     pilot = Pilot(CANDIDATES, figures.value, figures.log_sd, figures.value * costs, winner,
                   ran, evaluations.astype(jnp.int32))
-    return pilot, jnp.where(look.go_on, jnp.where(grid_on, 2 + winner, 1), 0)
+    rest = jnp.where(look.go_on, jnp.where(grid_on, rests[2], rests[1]), rests[0])
+    return pilot, rest.astype(jnp.int32)
 
 
 @partial(jax.jit, static_argnames="costs")
@@ -286,13 +286,13 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
 
         mixture = stage(mixture_on, mixture_stage)
 
-    pilot, outcome = _verdict(look, grid_on, grid, mixture_on, mixture, costs=costs,
-                              stages=s.stages, search_n=s.search_n)
+    pilot, rest = _verdict(look, grid_on, grid, mixture_on, mixture, costs=costs,
+                           stages=s.stages, search_n=s.search_n, rests=s.rests)
 
-    # The winner streams what its stage left.
+    # The winner streams what its stage left (QMC: one program for every stage's rest).
     done = int(np.sum(s.stages))
     fitted = None if mixture is None else mixture.mixture
-    streams = [partial(_qmc_stream, problem, stream_key, rest, fitted) for rest in s.rests]
+    streams = [lambda: (_qmc_stream(problem, stream_key, rest, s.rests, done), fitted)]
     if grid is not None:
         finer = look.nets.heavy & (d <= FINE_GRID_MAX_DIM)
         adaptive, through = Adaptive(grid.state, finer), GridQMC(grid.state.grid)
@@ -300,7 +300,7 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
                     lambda: (through.stream(stream_key, problem, s.rests[2], done), fitted)]
     if mixture is not None:
         streams.append(lambda: _mixture_stream(problem, stream_key, s, mixture, done))
-    est, fitted = switch(outcome, streams)
+    est, fitted = switch(pilot.choice, streams)
     est = dataclasses.replace(est, n=est.n + pilot.evaluations)
     options = [QMC()] + ([] if grid is None else [adaptive, through])
     options += [] if mixture is None else [Importance(fitted)]
@@ -309,8 +309,12 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
     return Run(est, OneOf(pilot.choice, tuple(options)), pilot)
 
 
-def _qmc_stream(problem, key, rest, fitted):
-    return problem.stream("qmc", key, rest), fitted
+def _qmc_stream(problem: Problem, key, rest, rests, done):
+    """QMC on the `rest` the pilot left (from the smallest to the largest of `rests`); with a
+    tolerance, on the smallest (a cap the tolerance may stop well short of)."""
+    if problem.tolerant:
+        return problem.stream("qmc", key, min(rests), done=done)
+    return problem.qmc_stream(key, rest, max(rests), min(rests), done)
 
 
 def _mixture_stream(problem, key, s: Schedule, mixture: _MixtureStage, done):

@@ -6,13 +6,14 @@ import dataclasses
 from typing import ClassVar
 
 import jax
+import jax.numpy as jnp
 
 from .._stream._rounds import fixed_for_derivatives
 from .._stream._sizes import QMC_MIN_REPLICAS
 from ..proposals import Grid
 from ._adaptive import train
 from ._edged_grid import BENT_REPLICAS, edged
-from ._method import AbstractMethod, Problem, Run, when
+from ._method import AbstractMethod, Problem, Run
 
 
 class GridQMC(AbstractMethod):
@@ -49,13 +50,11 @@ class GridQMC(AbstractMethod):
         return Run(dataclasses.replace(est, n=est.n + training.spent), plan)
 
     def stream(self, key, problem: Problem, budget: int, done=0):
-        """`budget` evaluations of QMC's nets through the grid (bent at singular faces)."""
-        grid = fixed_for_derivatives(self.grid)
-        bent = edged(grid)
-
-        def through(frozen, replicas):
-            return problem.stream("qmc", key, budget, frozen=frozen, done=done,
-                                  min_replicas=replicas)
-
-        return when(bent.powered, lambda: through(bent, BENT_REPLICAS),
-                    lambda: through(grid, QMC_MIN_REPLICAS))
+        """`budget` evaluations of QMC's nets through the grid (bent at singular faces, with
+        at least `BENT_REPLICAS` replicas there): one compiled program either way."""
+        bent = edged(fixed_for_derivatives(self.grid))
+        if problem.tolerant:  # (8 replicas, nets that grow to the tolerance)
+            return problem.stream("qmc", key, budget, frozen=bent, done=done)
+        replicas = jnp.where(bent.powered, BENT_REPLICAS, QMC_MIN_REPLICAS)
+        return problem.qmc_stream(key, budget, budget, budget, done, frozen=bent,
+                                  min_replicas=replicas, most_replicas=BENT_REPLICAS)

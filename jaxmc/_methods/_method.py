@@ -20,7 +20,7 @@ from .._checks import is_concrete
 from .._progress import progress_bar
 from .._stats import Estimate
 from .._stream._engine import stream_on_mesh
-from .._stream._sizes import PROBE_BUDGET, QMC_MIN_REPLICAS, sizes
+from .._stream._sizes import PROBE_BUDGET, QMC_MIN_REPLICAS, dynamic_qmc_sizes, sizes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +64,20 @@ class Problem:
             return stream_on_mesh(
                 key, frozen, self.lo, self.hi, self.rtol, self.atol, f=self.f, sizes=layout,
                 mesh=self.mesh, tolerant=self.tolerant, progress=self.progress,
+                batched=self.batched,
+            )
+
+    def qmc_stream(self, key, budget, cap: int, floor: int, done=0, *, frozen=None,
+                   min_replicas=QMC_MIN_REPLICAS, most_replicas=QMC_MIN_REPLICAS):
+        """Randomised QMC (through the map `frozen`, if given) on `budget` evaluations between
+        `floor` and `cap`, in nets that `min_replicas` replicas fit in (at most
+        `most_replicas`): both may be traced, one compiled program serves them all
+        (`dynamic_qmc_sizes`)."""
+        layout = dynamic_qmc_sizes(cap, floor, self.chunk, self.mesh.size, most_replicas)
+        with progress_bar(self.progress, None if self.tolerant else done + cap, done):
+            return stream_on_mesh(
+                key, frozen, self.lo, self.hi, self.rtol, self.atol, budget, min_replicas,
+                f=self.f, sizes=layout, mesh=self.mesh, tolerant=False, progress=self.progress,
                 batched=self.batched,
             )
 

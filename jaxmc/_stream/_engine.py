@@ -131,21 +131,32 @@ def _one_hot_moments(m: Moments, slot: jax.Array, slots: int) -> Moments:
     return Moments(count, place(m.mean), place(m.m2), m.tail)
 
 
-def stream_estimate(total: Moments, evaluations, bad, replicas: int) -> Estimate:
-    """The estimate of a run's moments: i.i.d. units, or the spread of `replicas` means."""
+def stream_estimate(total: Moments, evaluations, bad, replicas: int, active=None) -> Estimate:
+    """The estimate of a run's moments: i.i.d. units, or the spread of `replicas` means (the
+    first `active` of them, where that is known only when the stream runs)."""
     if replicas == 1:
         return estimate_from_moments(total, evaluations, bad)
     means = total.mean
-    mean = jnp.mean(means, axis=0)
-    var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
+    if active is None:
+        mean = jnp.mean(means, axis=0)
+        var = jnp.sum((means - mean) ** 2, axis=0) / (replicas * (replicas - 1))
+    else:
+        used = jnp.reshape(jnp.arange(replicas) < active, (replicas,) + (1,) * (means.ndim - 1))
+        count = active.astype(means.dtype)
+        mean = jnp.sum(jnp.where(used, means, 0), axis=0) / count
+        var = jnp.sum(jnp.where(used, (means - mean) ** 2, 0), axis=0) / (count * (count - 1))
+        replicas = active
     var, conservative = bounded_variance(var, mean, total.tail)
     return Estimate(**diagnosed(mean, var, evaluations, bad, total.tail, conservative,
                                 dof=replicas - 1))
 
 
 @per_integrand
-def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progress, batched):
-    """Evaluate `sizes.blocks` blocks (or fewer, once a tolerance is met) and reduce them."""
+def stream(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f, sizes, mesh,
+           tolerant, progress, batched):
+    """Evaluate `sizes.blocks` blocks (or fewer, once a tolerance is met) and reduce them;
+    for `sizes.dynamic` QMC, those of `budget` evaluations in nets that `min_replicas` (at
+    most `sizes.min_replicas`) fit in, both may be traced."""
     method = sizes.method
     d = 1 if lo.ndim == 0 else lo.shape[0]
     dtype = lo.dtype
@@ -157,13 +168,28 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progres
             jax.random.split(key, sizes.replicas)
         )
         log2_block = sizes.block.bit_length() - 1
+    active = nblocks = None
+    if sizes.dynamic:
+        # Nets of the largest power of two of points that `min_replicas` fit in the budget,
+        # as many replicas as fit; each walked block by block, replica after replica.
+        budget = jnp.asarray(budget, jnp.int32)
+        fewest = sizes.min_replicas if min_replicas is None else min_replicas
+        net = jnp.left_shift(1, 31 - jax.lax.clz(budget // fewest))
+        active, per_replica = budget // net, net // sizes.block
+        nblocks = active * per_replica
+
+    def replica_of(b):
+        """A QMC block's replica and its position in the replica's net."""
+        if sizes.dynamic:
+            return b // per_replica, b % per_replica
+        return b % sizes.replicas, b // sizes.replicas
 
     def points_of_block(b):
         """The block's points `x` and their density `p(x)`."""
         if method == "importance":  # from the frozen proposal
             return frozen.sample(jax.random.fold_in(key, b), sizes.block)
         if method == "qmc":
-            r, position = b % sizes.replicas, b // sizes.replicas
+            r, position = replica_of(b)
             u = replica_points((scrambles[0][r], scrambles[1][r]), position, log2_block, dtype)
             if frozen is not None:  # scrambled nets through a trained grid's map
                 x, log_p = frozen.map(u)
@@ -191,7 +217,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progres
         fx = evaluate(f, x, batched)
         y, bad = ratio(fx, px)
         index = b * sizes.block + jnp.arange(sizes.block)
-        valid = (index < sizes.budget) & inside
+        valid = (index < sizes.budget if nblocks is None else index < nblocks * sizes.block) & inside
         m = block_moments(y, valid, with_tail=False)  # the step's tail comes from all its blocks
         if not per_sample:
             # The block is one randomisation: one observation, its mean.
@@ -199,7 +225,7 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progres
             m = Moments(unit, m.mean, jnp.zeros_like(m.m2), m.tail)
         if method == "qmc":
             # Its replica's running mean weighs it by its points.
-            m = _one_hot_moments(m._replace(count=m.count * sizes.block), b % sizes.replicas,
+            m = _one_hot_moments(m._replace(count=m.count * sizes.block), replica_of(b)[0],
                                  sizes.replicas)
         evaluations = jnp.sum(valid, dtype=jnp.int32)
         return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
@@ -235,11 +261,16 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progres
         m, e, b = run_step(t)
         carry = (merge(total, m), evaluations + e, bad + b)
         if progress:
-            _report(stream_estimate(*carry, sizes.replicas), bar_total, mesh, last=False)
+            _report(stream_estimate(*carry, sizes.replicas, active), bar_total, mesh, last=False)
         return carry
 
     if not tolerant:
         whole = sharded(sizes.per_step)
+        if nblocks is not None:  # (the steps past the budget's blocks are skipped)
+            run = whole
+            empty = (start, zero, zero)
+            whole = lambda t: jax.lax.cond(t * sizes.per_step < nblocks, run,  # noqa: E731
+                                           lambda _: empty, t)
         carry, _ = jax.lax.scan(
             lambda c, t: (step(whole, c, t), None), (start, zero, zero), jnp.arange(sizes.steps)
         )
@@ -293,13 +324,14 @@ def stream(key, frozen, lo, hi, rtol, atol, *, f, sizes, mesh, tolerant, progres
             _, carry, checks = walk(state, sizes.per_step // sizes.early_steps, sizes.early_steps)
             state = (zero + 1, carry, checks)
         _, carry, _ = walk(state, sizes.per_step, sizes.steps)
-    est = stream_estimate(*carry, sizes.replicas)
+    est = stream_estimate(*carry, sizes.replicas, active)
     if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
         _report(est, bar_total, mesh, last=True)
     return est
 
 
-def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **settings):
+def stream_on_mesh(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f, mesh,
+                   batched, **settings):
     """`stream`, each device of `mesh` running its share of the blocks under `shard_map`.
 
     The arrays enter `shard_map` as arguments, replicated: it may not close over
@@ -308,7 +340,7 @@ def stream_on_mesh(key, frozen, lo, hi, rtol, atol, *, f, mesh, batched, **setti
     in a mesh context) rules `shard_map` out: one program then runs every
     device's blocks, and the compiler places it (a `vmap`'s batch stays sharded).
     """
-    args = (key, frozen, lo, hi, rtol, atol)
+    args = (key, frozen, lo, hi, rtol, atol, budget, min_replicas)
     settings = dict(settings, f=f, mesh=mesh, batched=batched)
     if mesh.size == 1:
         return stream(*args, **settings)

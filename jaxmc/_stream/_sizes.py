@@ -66,6 +66,10 @@ class Sizes(eqx.Module):
     early_steps: int = eqx.field(static=True)
     strata: tuple[int, ...] = eqx.field(static=True)  # jittered-grid counts per block
     replicas: int = eqx.field(static=True)  # randomised-QMC replicas (1 otherwise)
+    # Randomised QMC on a budget given when it runs (`dynamic_qmc_sizes`): `budget` is then
+    # the most it may be, `replicas` the most replicas, and `min_replicas` sizes the nets.
+    dynamic: bool = eqx.field(static=True, default=False)
+    min_replicas: int = eqx.field(static=True, default=QMC_MIN_REPLICAS)
 
 
 def final_net(budget: int, min_replicas: int = QMC_MIN_REPLICAS) -> int:
@@ -142,6 +146,24 @@ def sizes(
     steps = -(-blocks // per_step)
     early = early_steps(per_step, devices, replicas) if tolerant else 1
     return Sizes(method, block, blocks, budget, per_step, steps, early, strata, replicas)
+
+
+def dynamic_qmc_sizes(cap: int, floor: int, chunk: int, devices: int,
+                      min_replicas: int = QMC_MIN_REPLICAS) -> Sizes:
+    """Randomised QMC's sizes for a budget known only when the stream runs, from `floor` to
+    `cap` (one compiled program for all of them): blocks as large as the smallest budget's
+    nets allow, and room for every budget's replicas (fewer than `2 * min_replicas`: a budget
+    holds fewer than twice `min_replicas` of its largest nets). The stream walks each
+    replica's net block by block, replica after replica, and skips the steps past its
+    budget's blocks."""
+    if floor < 2 * min_replicas or cap < floor:
+        raise ValueError(f"a budget of at least {2 * min_replicas} is needed, got {floor}.")
+    block = min(BLOCK, final_net(floor, min_replicas))
+    blocks = cap // block
+    per_step = min(max(1, -(-chunk // block), devices), blocks)
+    steps = -(-blocks // per_step)
+    return Sizes("qmc", block, blocks, cap, per_step, steps, 1, (), 2 * min_replicas - 1,
+                 dynamic=True, min_replicas=min_replicas)
 
 
 def early_steps(per_step: int, devices: int, replicas: int) -> int:
