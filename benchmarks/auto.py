@@ -93,36 +93,45 @@ class Case:
 def _cases(quick: bool) -> list[Case]:
     if quick:
         # One smooth, two peaked and one correlated case, two of each half.
-        return [Case(problems.genz_oscillatory(8)), Case(problems.vegas_narrow_gaussian()),
+        return [Case(problems.genz_oscillatory(8), "validation"),
+                Case(problems.vegas_narrow_gaussian()),
                 Case(problems.iflow_camel(4), "validation"),
                 Case(problems.correlated_gaussian(5))]
-    # The tuning half: the families and shapes `auto` was developed on. The validation half:
-    # the other families of the same suite, and kinds the tuning half lacks (`validation`).
-    tuning = [
-        *(family(d) for family in (problems.genz_oscillatory, problems.genz_product_peak,
-                                   problems.genz_gaussian) for d in (2, 8, 16)),
+    # The suite's cases in turn go to the tuning half (the cases `auto` was developed on)
+    # and the validation half, which also holds kinds the tuning half lacks (`validation`).
+    genz = [
+        family(d)
+        for family in (
+            problems.genz_oscillatory,
+            problems.genz_product_peak,
+            problems.genz_corner_peak,
+            problems.genz_gaussian,
+            problems.genz_continuous,
+            problems.genz_discontinuous,
+        )
+        for d in (2, 8, 16)
+    ]
+    peaked = [
         problems.vegas_narrow_gaussian(),
+        problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
         problems.iflow_gaussian(8),
+        problems.iflow_camel(4),
         problems.iflow_camel(16),
+        problems.iflow_annulus(),
+    ]
+    users = [
         problems.correlated_gaussian(5),
         problems.oblique_resonance(4),
-        problems.power_singularity(6, 1 / 3),
-        problems.ball_indicator(3),
-    ]
-    held = [
-        *(family(d) for family in (problems.genz_corner_peak, problems.genz_continuous,
-                                   problems.genz_discontinuous) for d in (2, 8, 16)),
-        problems.diagonal_gaussians("two Gaussians (1/3, 2/3)", 4, [1 / 3, 2 / 3]),
-        problems.iflow_camel(4),
-        problems.iflow_annulus(),
         problems.oblique_resonance(12),
+        problems.power_singularity(6, 1 / 3),
         problems.corner_singularity(4, 1.5),
+        problems.ball_indicator(3),
         problems.ball_indicator(10),
         problems.half_space_indicator(8),
-        *validation.cases(),
     ]
-    cases = [Case(p) for p in tuning] + [Case(p, "validation") for p in held]
-    cases.append(Case(problems.power_singularity(2, 0.5), finite_variance=False))
+    cases = [Case(p, ("tuning", "validation")[i % 2]) for i, p in enumerate([*genz, *peaked, *users])]
+    cases += [Case(p, "validation") for p in validation.cases()]
+    cases.append(Case(problems.power_singularity(2, 0.5), "tuning", finite_variance=False))
     return cases
 
 

@@ -137,7 +137,7 @@ def test_a_figures_uncertainty_is_what_it_varies_by():
     @jax.vmap
     def figures(key):
         y, _ = net_values(key, lo, hi, f, False, 0, 4, 7)
-        plain, _ = iid_figure(jax.vmap(f)(jax.random.uniform(key, (4096, 3))))
+        plain, _, _ = iid_figure(jax.vmap(f)(jax.random.uniform(key, (4096, 3))))
         return qmc_figure(y, 4.0), plain
 
     qmc, plain = figures(jax.random.split(jax.random.key(0), 40))
@@ -157,7 +157,7 @@ def test_the_product_outlook_reads_what_a_product_density_can_do():
     for f, gain in ((product, 20.0), (ridge, None)):
         y, bins = net_values(key, lo, hi, f, False, 0, 4, 8)
         outlook = product_outlook(bins, y)
-        plain, _ = iid_figure(jnp.reshape(y, (-1,)))
+        plain, _, _ = iid_figure(jnp.reshape(y, (-1,)))
         ratio = float(plain.value) / float(outlook.value)
         if gain:
             assert ratio > gain, ratio
@@ -180,17 +180,19 @@ def _smooth_or_peak(x, peaked):
 def test_auto_pilot_never_biases_the_result():
     # Under jit and vmap over keys (the choice pooled over them), over 120 keys the mean error
     # is within 5 of its standard errors and the error bars are honest, on a smooth integrand
-    # and on a peak.
+    # and on a peak. (On the peak the batch streams QMC through the grid, whose values read
+    # as a power-law tail on a third of the keys: there the stream reports the i.i.d. bound,
+    # an upper bound, so the error bars are honest but not tight.)
     lo, hi = box(2)
     keys = jax.random.split(jax.random.key(3), 120)
     over_keys = jax.jit(jax.vmap(
         lambda k, peaked: jaxmc.integrate(k, _smooth_or_peak, lo, hi, n=2**15, args=peaked),
         in_axes=(0, None),
     ))
-    for peaked, exact in [(False, np.sin(1.0) ** 2), (True, 1.0)]:
+    for peaked, exact, honest in [(False, np.sin(1.0) ** 2, "equal"), (True, 1.0, "conservative")]:
         est = over_keys(keys, jnp.asarray(peaked))
         assert np.unique(np.asarray(est.pilot.choice)).size == 1  # one choice for the batch
-        assert_unbiased_and_honest(est, exact, honest="equal")
+        assert_unbiased_and_honest(est, exact, honest=honest)
 
 
 def _correlated(d, sigma, rho):
@@ -288,7 +290,7 @@ def test_a_plan_streams_at_once_without_a_pilot():
     with compilations() as compiled:
         again = jaxmc.integrate(jax.random.key(1), f, lo, hi, n=2**16, method=first.plan)
     names = {m.group(1) for m in (re.search(r"jit\((\w+)\)", c) for c in compiled) if m}
-    assert names <= {"stream", "refine", "refine_finer", "edged"}, names
+    assert names <= {"values", "stream", "edged"}, names
     assert again.pilot is None and again.method == first.method
     assert int(again.n) > 0.9 * 2**16  # no pilot spent any of it
     keys = jax.random.split(jax.random.key(2), 64)
@@ -353,21 +355,25 @@ def test_methods_are_objects_and_their_names_are_aliases():
 
 
 def test_a_new_integrand_compiles_only_what_evaluates_it():
-    # The pilot's figures, EM's fits and the mixture's draws are compiled once per shape: a
-    # second integrand of the same dimension and budget, whose pilot runs the same stages,
-    # compiles only the programs that evaluate it.
+    # The pilot's figures, EM's fits, the mixture's draws and the streams' points and moments
+    # are compiled once per shape: a second integrand of the same dimension and budget, whose
+    # pilot takes the same path (twice the first: every figure is relative, and doubling is
+    # exact), compiles only the programs that evaluate it.
     lo, hi = box(3)
-    first = jaxmc.integrate(jax.random.key(6), _correlated(3, 0.05, 0.9), lo, hi, n=2**15)
-    with compilations() as compiled:
-        second = jaxmc.integrate(jax.random.key(6), _correlated(3, 0.06, 0.85), lo, hi,
-                                 n=2**15)
+    f = _correlated(3, 0.05, 0.9)
+    with warnings.catch_warnings():  # (a peak this narrow at 2^15 may read as a tail)
+        warnings.simplefilter("ignore", jaxmc.ReliabilityWarning)
+        first = jaxmc.integrate(jax.random.key(6), f, lo, hi, n=2**15)
+        with compilations() as compiled:
+            second = jaxmc.integrate(jax.random.key(6), lambda x: 2.0 * f(x), lo, hi, n=2**15)
+    assert first.method == second.method and bool(first.pilot.stages[2]), first.pilot
     np.testing.assert_array_equal(first.pilot.stages, second.pilot.stages)
     names = {m.group(1) for m in (re.search(r"jit\((\w+)\)", c) for c in compiled) if m}
-    evaluating = {"net_values", "run_adaptation", "mapped_net_values", "_modes",
-                  "mixture_values", "stream", "refine", "refine_finer"}
-    assert names <= evaluating, names - evaluating
-    for est in (first, second):
-        assert_covers(est, 1.0)
+    # (Outside jit the streams, the grid's rounds and the pilot's nets are run step by step,
+    # and only the integrand's values are compiled for a new integrand: `values`.)
+    assert names <= {"values", "_modes", "mixture_values"}, names
+    assert_covers(first, 1.0)
+    np.testing.assert_allclose(second.mean, 2 * first.mean, rtol=1e-12)
 
 
 # ----------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from ._figures import Figure, unmeasured
 from ._grid import adaptive_figure, grid_qmc_figure, grid_qmc_values
 from ._mixture import mixture_outlook, mixture_pilot, search_modes
 from ._modes import search_evaluations
-from ._nets import MAX_NET_GROWTH, REPLICAS, NetFigures, credited, net_values, nets_figures
+from ._nets import MAX_NET_GROWTH, REPLICAS, NetFigures, net_values, nets_figures
 from ._pilot import Pilot
 from ._race import CANDIDATES, choose, grid_can_win, mixture_can_win, pooled_any
 
@@ -162,7 +162,7 @@ class _Look(eqx.Module):
 def _look(y, bins, *, growth, growth_after, price, z, costs):
     """QMC's pilot nets measured (QMC projected to the stream's nets after this stage and
     after the grid's), and whether the grid's stage is worth running."""
-    both = nets_figures(y, bins, (growth, growth_after))
+    both = nets_figures(y, bins, (growth, growth_after), z)
     nets, after = (eqx.tree_at(lambda n: n.qmc, both, jax.tree.map(lambda a: a[k], both.qmc))
                    for k in (0, 1))
     go_on = grid_can_win(nets, np.asarray(costs, y.dtype), price, z)
@@ -179,7 +179,6 @@ class _GridStage(eqx.Module):
     samples: Any
     adaptive: Figure
     through: Figure
-    heavy: jax.Array  # the trained grid's last round read a power-law tail
     seeded: Any  # the mixture seeded from the grid (None in one dimension)
     seeded_outlook: jax.Array
     modes: Any  # the modes near QMC's best points (None: not searched)
@@ -200,11 +199,10 @@ def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, *, costs, stages, 
     dtype = look.nets.plain.value.dtype
     figures = [look.nets.qmc]
     if grid is not None:
-        # A tail the grid's rounds read is QMC's too (f/q and f share it). A grid that misses
-        # a mode hides mass its figure cannot show: neither it nor QMC through it competes.
-        after = credited(look.qmc_after_grid, look.nets.plain, grid.heavy)
+        # A grid that misses a mode hides mass its figure cannot show: neither it nor QMC
+        # through it competes.
         usable = grid_on & ~grid.misses
-        figures = [_where(grid_on, after, look.nets.qmc),
+        figures = [_where(grid_on, look.qmc_after_grid, look.nets.qmc),
                    _where(usable, grid.adaptive, unmeasured(dtype)),
                    _where(usable, grid.through, unmeasured(dtype))]
     if mixture is not None:
@@ -228,8 +226,7 @@ def _mixture_on(look: _Look, grid: _GridStage, *, costs):
     """Whether the mixture's stage is worth running, after the grid's: its outlook could win,
     or the grid misses a mode (the mixture is then the one candidate seeded with it)."""
     dtype = look.nets.plain.value.dtype
-    qmc = credited(look.qmc_after_grid, look.nets.plain, grid.heavy)
-    measured = _stack([qmc, grid.adaptive, grid.through, unmeasured(dtype)])
+    measured = _stack([look.qmc_after_grid, grid.adaptive, grid.through, unmeasured(dtype)])
     costs = np.asarray(costs, dtype)
     return pooled_any(mixture_can_win(grid.seeded_outlook, costs, measured) | grid.misses)
 
@@ -259,17 +256,16 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
     def grid_stage():
         training = train(train_key, problem, sizing, fine=look.nets.heavy)
         grid = training.state.grid
-        figure, heavy = adaptive_figure(training.parts, training.samples, z,
-                                        round_size=s.round_size)
+        figure = adaptive_figure(training.parts, training.samples, z, round_size=s.round_size)
         y = grid_qmc_values(grid_key, grid, f, batched, s.per_replica.bit_length() - 1)
-        through = grid_qmc_figure(y, growth=s.growth(s.per_replica, s.rests[2]))
+        through = grid_qmc_figure(y, growth=s.growth(s.per_replica, s.rests[2]), z=z)
         if not s.mixture_n:
-            return _GridStage(training.state, training.samples, figure, through, heavy, None,
+            return _GridStage(training.state, training.samples, figure, through, None,
                               jnp.full((), jnp.inf, lo.dtype), None, jnp.asarray(False))
         seeded, outlook = mixture_outlook(grid, training.samples)
         modes, misses = search_modes(qmc_key, early[0], grid, training.samples, f=f,
                                      batched=batched)
-        return _GridStage(training.state, training.samples, figure, through, heavy, seeded,
+        return _GridStage(training.state, training.samples, figure, through, seeded,
                           outlook, modes, misses)
 
     grid = stage(grid_on, grid_stage)

@@ -23,7 +23,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._diagnostics import HEAVY_TAIL_ESS_SHARE, power_law_tail, tail_of
+from .._diagnostics import (
+    HEAVY_TAIL_ESS_SHARE,
+    STRUCTURED_MAX_PARETO_K,
+    TAIL,
+    pareto_k,
+    tail_of,
+)
 
 
 # A figure from fewer effective points than this per replica (or i.i.d. group of the same
@@ -81,12 +87,29 @@ def effective_points(values) -> jax.Array:
                    / jnp.maximum(jnp.sum(flat**2, axis=0), tiny))
 
 
-def iid_figure(values, evaluations=None) -> tuple[Figure, jax.Array]:
+def tail_evidence(values, z) -> tuple[jax.Array, jax.Array]:
+    r"""Whether `values` `(n, ...)` have a power-law tail: `(suspected, evident)`, their Pareto
+    $\hat k$ above `STRUCTURED_MAX_PARETO_K` (0.2, where `jaxmc.stats` bounds a structured
+    variance by the i.i.d. one), and above it by `z` standard errors, $(1 + \hat k)/\sqrt{M}$
+    for $M$ exceedances (the generalised Pareto fit's asymptotic error): on a few thousand
+    values $\hat k$ is uncertain by about 0.1, and bounded values (a sum's exponential) read
+    above 0.2 by chance."""
+    tail = tail_of(values)
+    k = pareto_k(tail)
+    count = tail.count
+    exceedances = jnp.floor(jnp.minimum(jnp.minimum(count / 5, 3 * jnp.sqrt(count)), TAIL))
+    error = (1 + jnp.maximum(k, 0)) / jnp.sqrt(jnp.maximum(exceedances, 1))
+    return (jnp.any(k > STRUCTURED_MAX_PARETO_K),
+            jnp.any(k - z * error > STRUCTURED_MAX_PARETO_K))
+
+
+def iid_figure(values, z=0.0) -> tuple[Figure, jax.Array, jax.Array]:
     r"""The figure of i.i.d. `values` `(n, ...)` ($f/p$ at points drawn from $p$): the sample's
     relative variance per evaluation, $\log$'s standard deviation $\sqrt{(\kappa - 1)/n}$ from
-    the kurtosis $\kappa$ of their magnitudes, and whether their tail is a power law. A
-    sample whose mean is 0 measured nothing (`inf`)."""
-    n = values.shape[0] if evaluations is None else evaluations
+    the kurtosis $\kappa$ of their magnitudes, and whether their tail is a power law, suspected
+    and evident at `z` standard errors (`tail_evidence`). A sample whose mean is 0 measured
+    nothing (`inf`)."""
+    n = values.shape[0]
     mean = jnp.mean(values, axis=0)
     v = relative_variance(mean, jnp.var(values, axis=0, ddof=1))
     a = magnitude(values)
@@ -94,16 +117,17 @@ def iid_figure(values, evaluations=None) -> tuple[Figure, jax.Array]:
     m2 = jnp.mean(centred**2)
     kurtosis = jnp.mean(centred**4) / jnp.maximum(m2**2, jnp.finfo(a.dtype).tiny)
     log_sd = jnp.sqrt(jnp.maximum(kurtosis - 1, 2.0) / n)
-    heavy = jnp.any(power_law_tail(tail_of(values)))
+    suspected, evident = tail_evidence(values, z)
     seen = jnp.any(mean != 0)
-    return Figure(jnp.where(seen, v, jnp.inf), jnp.where(seen & ~heavy, log_sd, jnp.inf)), heavy
+    return (Figure(jnp.where(seen, v, jnp.inf), jnp.where(seen & ~suspected, log_sd, jnp.inf)),
+            suspected, evident)
 
 
 def frozen_figure(values, misses_mass=False) -> Figure:
     """`iid_figure` of the values $f/q$ of a density held fixed through its stream, no
     candidate (`inf`) below `MIN_ESS_SHARE` effective points, unless `misses_mass` says the
     alternative (a grid) misses a mode this density holds."""
-    figure, _ = iid_figure(values)
+    figure, _, _ = iid_figure(values)
     loose = (effective_points(values) < MIN_ESS_SHARE * values.shape[0]) & ~misses_mass
     return Figure(jnp.where(loose, jnp.inf, figure.value), figure.log_sd)
 

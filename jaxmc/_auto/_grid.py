@@ -21,7 +21,7 @@ SCATTER_ROUNDS = 5
 
 
 @partial(jax.jit, static_argnames="round_size")
-def adaptive_figure(parts, samples, z, *, round_size) -> tuple[Figure, jax.Array]:
+def adaptive_figure(parts, samples, z, *, round_size) -> Figure:
     r"""The trained grid's figure from its training rounds' estimates `parts` and the last
     round's `samples`: `(Figure, whether its values f/q have a power-law tail)`.
 
@@ -42,8 +42,8 @@ def adaptive_figure(parts, samples, z, *, round_size) -> tuple[Figure, jax.Array
     k = SCATTER_ROUNDS - 1
     cap = v_scatter * jnp.exp(z * jnp.sqrt(polygamma(1, k / 2.0)))
     seen = jnp.any(parts.mean[-1] != 0)
-    own, heavy = iid_figure(values)
-    return Figure(jnp.where(seen, jnp.minimum(v_last, cap), jnp.inf), own.log_sd), heavy
+    own, _, _ = iid_figure(values)
+    return Figure(jnp.where(seen, jnp.minimum(v_last, cap), jnp.inf), own.log_sd)
 
 
 def grid_qmc_values(key, grid, f, batched, log2_size):
@@ -52,14 +52,14 @@ def grid_qmc_values(key, grid, f, batched, log2_size):
     return mapped_net_values(key, edged(grid), f, batched, log2_size)
 
 
-@partial(jax.jit, static_argnames="growth")
-def grid_qmc_figure(y, *, growth) -> Figure:
+@partial(jax.jit, static_argnames=("growth", "z"))
+def grid_qmc_figure(y, *, growth, z) -> Figure:
     """QMC's figure through the grid, from its nets' values `y` `(R, m, ...)` (as QMC's own,
     `qmc_figure`, projected `growth`-fold): no candidate where the values saw nothing or
     have fewer effective points than `MIN_ESS_SHARE` of their number (a loose fit)."""
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    plain, heavy = iid_figure(flat)
-    figure = credited(qmc_figure(y, growth), plain, heavy)
+    plain, _, evident = iid_figure(flat, z)
+    figure = credited(qmc_figure(y, growth), plain, evident)
     loose = effective_points(flat) < MIN_ESS_SHARE * flat.shape[0]
     unfit = loose | blind(flat, REPLICAS)
     return Figure(jnp.where(unfit, jnp.inf, figure.value), figure.log_sd)

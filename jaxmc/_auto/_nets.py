@@ -14,6 +14,7 @@ give plain Monte Carlo's variance, and the outlook of a density fitted to them
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -21,10 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._box import to_box
-from .._compiled import per_integrand
-from .._integrand import evaluate, ratio
+from .._integrand import ratio
 from .._points._sobol import sobol_scramble
-from .._stream._engine import replica_points
+from .._stream._blocks import replica_points, values
 from ._figures import Figure, blind, iid_figure, relative_variance
 
 
@@ -41,7 +41,7 @@ class NetFigures(eqx.Module):
 
     qmc: Figure  # QMC's, projected to the stream's nets
     plain: Figure  # plain Monte Carlo's on the same points
-    heavy: jax.Array  # the values have a power-law tail (Pareto k-hat > 0.2)
+    heavy: jax.Array  # the values may have a power-law tail (Pareto k-hat > 0.2)
     blind: jax.Array  # they saw nothing, or too few effective points
     outlook: Figure  # a product density's, fitted and read on halves of the nets
 
@@ -63,33 +63,43 @@ def _bins(u):
     return jnp.clip(jnp.floor(u * OUTLOOK_BINS), 0, OUTLOOK_BINS - 1).astype(jnp.int8)
 
 
-@per_integrand
 def net_values(key, lo, hi, f, batched, first, blocks, log2_block):
     """Integrand values $f/p$ `(REPLICAS, blocks * 2**log2_block, ...)` on the pilot's nets
-    (`_net_units` in the box), and each point's bin on each axis `(..., d)`."""
+    (`_net_units` in the box), and each point's bin on each axis `(..., d)`. Only the values
+    are compiled for each integrand (`values`); the points once per shape."""
+    x, p, bins = _net_points(key, lo, hi, first=first, blocks=blocks, log2_block=log2_block)
+    return _per_replica(values(x, f=f, batched=batched), p), bins
+
+
+@partial(jax.jit, static_argnames=("first", "blocks", "log2_block"))
+def _net_points(key, lo, hi, *, first, blocks, log2_block):
+    """The points of `net_values`, flat `(REPLICAS * m, ...)`, their density and bins."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
     u = _net_units(key, d, lo.dtype, first, blocks, log2_block)
-    volume = jnp.prod(hi - lo)
-
-    def replica(ur):
-        x = to_box(ur if lo.ndim else ur[:, 0], lo, hi)
-        return ratio(evaluate(f, x, batched), 1 / volume)[0]
-
-    return jax.vmap(replica)(u), _bins(u)
+    x = to_box(jnp.reshape(u, (-1, d)) if lo.ndim else jnp.reshape(u, (-1,)), lo, hi)
+    p = jnp.broadcast_to(1 / jnp.prod(hi - lo), x.shape[:1])
+    return x, p, _bins(u)
 
 
-@per_integrand
+@jax.jit
+def _per_replica(fx, p):
+    """The values $f/p$ `(REPLICAS, m, ...)` (non-finite ones zeroed, as `ratio` does)."""
+    y = ratio(fx, p)[0]
+    return jnp.reshape(y, (REPLICAS, -1) + y.shape[1:])
+
+
 def mapped_net_values(key, density, f, batched, log2_size):
     r"""The values $f/q$ `(REPLICAS, 2**log2_size, ...)` of whole nets carried through a
     map `density` (a trained grid's: $x = G(u)$, $q$ its density)."""
+    x, q = _mapped_points(key, density, log2_size=log2_size)
+    return _per_replica(values(x, f=f, batched=batched), q)
+
+
+@partial(jax.jit, static_argnames="log2_size")
+def _mapped_points(key, density, *, log2_size):
     u = _net_units(key, density.dim, density.lo.dtype, 0, 1, log2_size)
-
-    def replica(ur):
-        x, log_q = density.map(ur)
-        return ratio(evaluate(f, x if density.event_ndim else x[:, 0], batched),
-                     jnp.exp(log_q))[0]
-
-    return jax.vmap(replica)(u)
+    x, log_q = density.map(jnp.reshape(u, (-1, density.dim)))
+    return (x if density.event_ndim else x[:, 0]), jnp.exp(log_q)
 
 
 def _replica_figures(y, growths):
@@ -127,16 +137,16 @@ def qmc_figure(y, growths) -> Figure:
                   jnp.where(finite, jnp.sqrt(spread), jnp.inf))
 
 
-def nets_figures(y, bins, growth) -> NetFigures:
+def nets_figures(y, bins, growth, z) -> NetFigures:
     """`NetFigures` of the pilot's values `y` `(R, m, ...)` in `bins` (`net_values`), QMC's
-    projected `growth`-fold (a tuple: stacked, one per growth). Under a power-law tail QMC is
-    credited with plain MC's variance (which its stream reports there, `bounded_variance`),
-    as is QMC through a density of the values it streams."""
+    projected `growth`-fold (a tuple: stacked, one per growth). Under a power-law tail evident
+    at `z` standard errors QMC is credited with plain MC's variance (which its stream reports
+    there, `bounded_variance`), as is QMC through a density of the values it streams."""
     replicas = y.shape[0]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    plain, heavy = iid_figure(flat)
-    qmc = credited(qmc_figure(y, growth), plain, heavy)
-    return NetFigures(qmc, plain, heavy, blind(flat, replicas), product_outlook(bins, y))
+    plain, suspected, evident = iid_figure(flat, z)
+    qmc = credited(qmc_figure(y, growth), plain, evident)
+    return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y))
 
 
 def credited(qmc: Figure, plain: Figure, heavy) -> Figure:

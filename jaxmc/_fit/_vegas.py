@@ -258,11 +258,24 @@ class VegasPlus(AbstractAdaptation):
         return VegasPlusState(proposal, draw, proposal.lookup_table(), jnp.asarray(self.coarse, bool))
 
     def step(self, key, index, state, integrand: Integrand):
+        x, points = self.propose(state)
+        return self.update(key, index, state, integrand(x), points)
+
+    def propose(self, state):
+        """The round's points, `(x as the integrand takes them, (x, log q(x), their bins))`:
+        `step` is `update` after the integrand at `propose`'s points (split so that a loop of
+        rounds run from Python compiles only the integrand's values for each integrand)."""
+        x, log_p, bins = state.grid.map_with_bins(state.draw.u, state.table)
+        return _points(state.grid, x), (x, log_p, bins)
+
+    def update(self, key, index, state, fx, points):
+        """The round's estimate from the integrand's values `fx` at `propose`'s points, and
+        the state after it: `(state, Estimate, Samples)`, as `step`."""
         grid, draw = state.grid, state.draw
-        n, h = draw.u.shape[0], draw.counts.shape[0]
-        x, log_p, bins = grid.map_with_bins(draw.u, state.table)
+        x, log_p, bins = points
         x = _points(grid, x)
-        fx = integrand(x)
+        h = draw.counts.shape[0]
+        n = draw.u.shape[0]
         y, bad = ratio(fx, jnp.exp(log_p))
         vol = 1.0 / h
         # In units of the round's largest value (`_unit`): the allocation and the refinement

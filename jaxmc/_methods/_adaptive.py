@@ -23,13 +23,14 @@ from .._stream._rounds import (
     refine,
     refine_finer,
     refining_rounds,
-    run_adaptation,
+    start,
     tail_refining,
     training_rounds,
     uniform_grid,
+    vegas_rounds,
 )
 from .._stream._sizes import ADAPTIVE_PROBE_REACH
-from ..fit import Integrand, Samples, VegasPlus
+from ..fit import Samples, VegasPlus
 from ._method import AbstractMethod, Problem, Run, stage, switch, when
 from ._one_of import OneOf
 
@@ -141,8 +142,8 @@ def train(key, problem: Problem, sizing: int, fine=False) -> Training:
         bins = fine_grid_bins(block)
         rule = VegasPlus(diagnostics=False, coarse_bins=grid_bins(block), coarse=~jnp.asarray(fine))
     grid = uniform_grid(problem.lo, problem.hi, bins=bins)
-    parts, state, samples = run_adaptation(rule, key, Integrand(problem.f, problem.batched), grid,
-                                           rounds, block, keep_samples=True)
+    parts, state, samples = vegas_rounds(rule, key, start(rule, key, grid, block=block), rounds,
+                                         f=problem.f, batched=problem.batched)
     return Training(state, parts, samples, rounds * block)
 
 

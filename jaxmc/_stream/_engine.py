@@ -57,34 +57,22 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
-from .. import _random
-from .._box import to_box
+from .._checks import is_concrete
 from .._compiled import per_integrand
 from .._diagnostics import bounded_variance, stderr_floor, variance_out_of_range
-from .._fit._vegas import stratified_unit_points
-from .._integrand import evaluate, ratio
-from .._points._common import uint32_to_unit
-from .._points._registry import unit_points
-from .._points._sobol import sobol_block, sobol_scramble
+from .._integrand import evaluate
 from .._progress import report
 from .._stats import (
     Estimate,
     Moments,
-    block_moments,
     diagnosed,
     estimate_from_moments,
     merge,
     merge_across_devices,
     merge_all,
-    tail_of,
 )
+from ._blocks import Context, context, step_moments, step_points, values
 from ._sizes import MIN_BLOCKS_TO_STOP, QMC_PASSES_TO_STOP
-
-
-def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
-    """Block `position` (`2**log2_size` points on $[0,1)^d$) of the Sobol' sequence
-    scrambled by `scramble = sobol_scramble(key, d)`: one QMC replica's next net block."""
-    return uint32_to_unit(sobol_block(*scramble, position, log2_size), dtype, centred=True)
 
 
 def at_rounding_floor(stderr: jax.Array, tail) -> jax.Array:
@@ -95,40 +83,6 @@ def at_rounding_floor(stderr: jax.Array, tail) -> jax.Array:
     if tail is None:
         return jnp.zeros(jnp.shape(stderr), bool)
     return stderr <= stderr_floor(tail) * (1 + 1e-3)  # (just above it: as good as)
-
-
-def _vegas_plus_block(key, frozen, n, f, batched):
-    r"""One VEGAS+ round on the frozen grid and allocation: one observation, its estimate.
-
-    The round's points are jittered into the hypercubes of the grid's unit cube,
-    `counts[h]` in cube $h$, mapped through the grid, and combined as
-    $\hat I = v \sum_h \bar y_h$ (§4.2, as `stats.stratified_estimate`); the rounds are i.i.d., so the
-    stream's variance comes from their spread.
-    """
-    grid, counts, strata = frozen
-    raw = _random.uniform(key, (n, grid.dim), grid.lo.dtype)
-    draw = stratified_unit_points(raw, counts, strata)
-    x, log_p, _ = grid.map_with_bins(draw.u)
-    fx = evaluate(f, x if grid.event_ndim else x[:, 0], batched)
-    y, bad = ratio(fx, jnp.exp(log_p))
-    # Only the mean is needed (the stream's variance comes from the rounds' spread):
-    # v sum_h mean_h = v sum_i y_i / n_{h(i)}, with no per-hypercube reduction.
-    per_point = 1.0 / (counts.shape[0] * jnp.maximum(counts, 1).astype(y.dtype))[draw.cube]
-    mean = jnp.sum(y * jnp.reshape(per_point, (-1,) + (1,) * (y.ndim - 1)), axis=0)
-    # The diagnostics are of the values y = f/p (as `stats.stratified_estimate`'s).
-    m = Moments(jnp.ones((), y.dtype), mean, jnp.zeros_like(mean), tail_of(y))
-    return m, jnp.asarray(n, jnp.int32), jnp.sum(bad, dtype=jnp.int32)
-
-
-def _one_hot_moments(m: Moments, slot: jax.Array, slots: int) -> Moments:
-    """Place a block's moments in row `slot` of `slots` rows (the others empty)."""
-    hot = jnp.arange(slots) == slot
-    count = jnp.where(hot, m.count, 0.0).astype(m.mean.dtype)
-
-    def place(a):
-        return jnp.where(jnp.reshape(hot, (slots,) + (1,) * a.ndim), a[None], jnp.zeros_like(a)[None])
-
-    return Moments(count, place(m.mean), place(m.m2), m.tail)
 
 
 def stream_estimate(total: Moments, evaluations, bad, replicas: int, active=None) -> Estimate:
@@ -151,169 +105,99 @@ def stream_estimate(total: Moments, evaluations, bad, replicas: int, active=None
                                 dof=replicas - 1))
 
 
+def _local(ctx: Context, t, device, *, f, batched, sizes, per_step, devices):
+    """Step `t` of device `device`'s blocks: `(its moments, evaluations, non-finite values)`."""
+    x, points = step_points(ctx, t, device, sizes=sizes, per_step=per_step, devices=devices)
+    return step_moments(ctx, evaluate(f, x, batched), points, sizes=sizes)
+
+
+def _accumulate(carry, m, evaluations, bad):
+    """The run's moments and counts with a step's added (Chan et al.'s merge)."""
+    total, done, bad_total = carry
+    return merge(total, m), done + evaluations, bad_total + bad
+
+
+def _checked(t, carry, checks, rtol, atol, *, sizes, active=None):
+    """The tolerance's checks after `t` steps, `checks = (the last one passed, the one
+    before)`: updated where the tolerance is checked. Enough units to trust a variance
+    estimate (two samples, or MIN_BLOCKS_TO_STOP block means: an early step may be one
+    block); QMC only at powers of two per replica (whole nets), i.e. after 1, 2, 4, ...
+    steps (each a power of two of rounds)."""
+    if sizes.replicas == 1:
+        per_sample = sizes.method in ("plain", "importance")
+        at_check = carry[0].count >= (2 if per_sample else MIN_BLOCKS_TO_STOP)
+    else:
+        at_check = (t >= 1) & ((t & (t - 1)) == 0)
+    est = stream_estimate(*carry, sizes.replicas, active)
+    met = est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean))
+    # A variance outside its dtype's range stays there (an overflowed sum of squares does
+    # not come back): no budget meets the tolerance, as at the rounding floor.
+    stuck = at_rounding_floor(est.stderr, carry[0].tail) | variance_out_of_range(est)
+    passed = jnp.all(met | stuck)
+    return tuple(jnp.where(at_check, new, old) for new, old in zip((passed, checks[0]), checks))
+
+
+def _stops(checks, *, sizes):
+    """Whether the checks stop the stream: QMC only when two in a row pass (nets of 2^k and
+    2^(k+1) points: the spread of 8 small nets that fell low stopped runs early and low, a
+    4-D camel at rtol=1e-3: 4 of 40 keys beyond 3 sigma)."""
+    last, before = checks
+    once = sizes.replicas == 1 or QMC_PASSES_TO_STOP == 1
+    return last & (before | once)
+
+
 @per_integrand
 def stream(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f, sizes, mesh,
            tolerant, progress, batched):
     """Evaluate `sizes.blocks` blocks (or fewer, once a tolerance is met) and reduce them;
     for `sizes.dynamic` QMC, those of `budget` evaluations in nets that `min_replicas` (at
-    most `sizes.min_replicas`) fit in, both may be traced."""
-    method = sizes.method
-    d = 1 if lo.ndim == 0 else lo.shape[0]
-    dtype = lo.dtype
-    volume = jnp.prod(hi - lo)
-    per_sample = method in ("plain", "importance")
+    most `sizes.min_replicas`) fit in, both may be traced. One program (`stepwise` runs the
+    same steps from Python, outside `jit`)."""
+    ctx = context(key, frozen, lo, hi, budget, min_replicas, sizes=sizes)
     bar_total = None if tolerant else sizes.budget  # (a tolerance may stop it anywhere)
-    if method == "qmc":
-        scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(
-            jax.random.split(key, sizes.replicas)
-        )
-        log2_block = sizes.block.bit_length() - 1
-    active = nblocks = None
-    if sizes.dynamic:
-        # Nets of the largest power of two of points that `min_replicas` fit in the budget,
-        # as many replicas as fit; each walked block by block, replica after replica.
-        budget = jnp.asarray(budget, jnp.int32)
-        fewest = sizes.min_replicas if min_replicas is None else min_replicas
-        net = jnp.left_shift(1, 31 - jax.lax.clz(budget // fewest))
-        active, per_replica = budget // net, net // sizes.block
-        nblocks = active * per_replica
-
-    def replica_of(b):
-        """A QMC block's replica and its position in the replica's net."""
-        if sizes.dynamic:
-            return b // per_replica, b % per_replica
-        return b % sizes.replicas, b // sizes.replicas
-
-    def points_of_block(b):
-        """The block's points `x` and their density `p(x)`."""
-        if method == "importance":  # from the frozen proposal
-            return frozen.sample(jax.random.fold_in(key, b), sizes.block)
-        if method == "qmc":
-            r, position = replica_of(b)
-            u = replica_points((scrambles[0][r], scrambles[1][r]), position, log2_block, dtype)
-            if frozen is not None:  # scrambled nets through a trained grid's map
-                x, log_p = frozen.map(u)
-                return (x if frozen.event_ndim else x[:, 0]), jnp.exp(log_p)
-        elif method == "plain":
-            u = unit_points("uniform", jax.random.fold_in(key, b), sizes.block, d, dtype=dtype)
-        else:
-            # Drawn in the default float dtype, then cast: this keeps the numbers of earlier
-            # versions for float32 bounds under x64 (a float32 draw truncates, not rounds).
-            u = unit_points(
-                "stratified", jax.random.fold_in(key, b), sizes.block, d, counts=sizes.strata
-            ).astype(dtype)
-        x = to_box(u if lo.ndim else u[:, 0], lo, hi)
-        return x, jnp.broadcast_to(1.0 / volume, (sizes.block,))
-
-    def moments_of_block(b, inside):
-        if method == "adaptive":
-            m, evaluations, bad = _vegas_plus_block(
-                jax.random.fold_in(key, b), frozen, sizes.block, f, batched
-            )
-            # Slots past the budget (the last step's spare ones) are dropped.
-            m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
-            return m, jnp.where(inside, evaluations, 0), jnp.where(inside, bad, 0), None
-        x, px = points_of_block(b)
-        fx = evaluate(f, x, batched)
-        y, bad = ratio(fx, px)
-        index = b * sizes.block + jnp.arange(sizes.block)
-        valid = (index < sizes.budget if nblocks is None else index < nblocks * sizes.block) & inside
-        m = block_moments(y, valid, with_tail=False)  # the step's tail comes from all its blocks
-        if not per_sample:
-            # The block is one randomisation: one observation, its mean.
-            unit = jnp.where(m.count > 0, 1.0, 0.0).astype(dtype)
-            m = Moments(unit, m.mean, jnp.zeros_like(m.m2), m.tail)
-        if method == "qmc":
-            # Its replica's running mean weighs it by its points.
-            m = _one_hot_moments(m._replace(count=m.count * sizes.block), replica_of(b)[0],
-                                 sizes.replicas)
-        evaluations = jnp.sum(valid, dtype=jnp.int32)
-        return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
-
-    def local(t, device, per_step):
-        # Device j takes slots [j * per_device, (j + 1) * per_device) of step t's blocks.
-        per_device = -(-per_step // mesh.size)
-        slot = device * per_device + jnp.arange(per_device, dtype=jnp.int32)
-        blocks = t * per_step + slot
-        inside = (slot < per_step) & (blocks < sizes.blocks)
-        m, evaluations, bad, values = jax.vmap(moments_of_block)(blocks, inside)
-        m = merge_all(m)
-        if values is not None:
-            # One search for the largest values among all the step's blocks: a block's own
-            # search and the merges of their tails cost twice as much (on a CPU).
-            y, valid = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + a.shape[2:]), values)
-            m = m._replace(tail=tail_of(y, valid))
-        return m, jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
 
     def sharded(per_step):
         """Step `t` of `per_step` blocks: `(its moments, evaluations, non-finite values)`."""
+        one = partial(_local, ctx, f=f, batched=batched, sizes=sizes, per_step=per_step,
+                      devices=mesh.size)
         # One device needs no collectives (and `stream_on_mesh` no shard_map): compiles
         # stay short.
-        one = partial(local, per_step=per_step)
         return partial(one, device=0) if mesh.size == 1 else partial(_across_devices, one, mesh)
 
-    start = _empty_like(jax.eval_shape(lambda: local(jnp.int32(0), 0, sizes.per_step)[0]))
+    start = _start(ctx, f, batched, sizes, mesh)
     zero = jnp.zeros((), jnp.int32)
     start, zero = jax.tree.map(partial(_carry_typed, mesh=mesh), (start, zero))
 
     def step(run_step, carry, t):
-        total, evaluations, bad = carry
-        m, e, b = run_step(t)
-        carry = (merge(total, m), evaluations + e, bad + b)
+        carry = _accumulate(carry, *run_step(t))
         if progress:
-            _report(stream_estimate(*carry, sizes.replicas, active), bar_total, mesh, last=False)
+            _report(stream_estimate(*carry, sizes.replicas, ctx.active), bar_total, mesh,
+                    last=False)
         return carry
 
     if not tolerant:
         whole = sharded(sizes.per_step)
-        if nblocks is not None:  # (the steps past the budget's blocks are skipped)
-            run = whole
-            empty = (start, zero, zero)
-            whole = lambda t: jax.lax.cond(t * sizes.per_step < nblocks, run,  # noqa: E731
+        if ctx.nblocks is not None:  # (the steps past the budget's blocks are skipped)
+            run, empty = whole, (start, zero, zero)
+            whole = lambda t: jax.lax.cond(t * sizes.per_step < ctx.nblocks, run,  # noqa: E731
                                            lambda _: empty, t)
         carry, _ = jax.lax.scan(
             lambda c, t: (step(whole, c, t), None), (start, zero, zero), jnp.arange(sizes.steps)
         )
     else:
 
-        def checked(t, carry, checks):
-            """The checks after `t` steps, `checks = (the last one passed, the one before)`:
-            updated where the tolerance is checked. Enough units to trust a variance estimate
-            (two samples, or MIN_BLOCKS_TO_STOP block means: an early step may be one block);
-            QMC only at powers of two per replica (whole nets), i.e. after 1, 2, 4, ... steps
-            (each a power of two of rounds)."""
-            if sizes.replicas == 1:
-                at_check = carry[0].count >= (2 if per_sample else MIN_BLOCKS_TO_STOP)
-            else:
-                at_check = (t >= 1) & ((t & (t - 1)) == 0)
-            est = stream_estimate(*carry, sizes.replicas)
-            met = est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean))
-            # A variance outside its dtype's range stays there (an overflowed sum of squares
-            # does not come back): no budget meets the tolerance, as at the rounding floor.
-            stuck = at_rounding_floor(est.stderr, carry[0].tail) | variance_out_of_range(est)
-            passed = jnp.all(met | stuck)
-            return tuple(jnp.where(at_check, new, old)
-                         for new, old in zip((passed, checks[0]), checks))
-
         def walk(state, per_step, steps):
             """Steps of `per_step` blocks from `state = (steps done, carry, checks)` until
-            the tolerance is met or `steps` are done. QMC stops only when two checks in a
-            row pass (nets of 2^k and 2^(k+1) points): the spread of 8 small nets that fell
-            low stopped runs early and low (a 4-D camel at rtol=1e-3: 4 of 40 keys beyond 3
-            sigma)."""
+            the tolerance is met or `steps` are done."""
             run_step = sharded(per_step)
-            once = sizes.replicas == 1 or QMC_PASSES_TO_STOP == 1
-
-            def cond(state):
-                t, _, (last, before) = state
-                return (t < steps) & ~(last & (before | once))
 
             def body(state):
                 t, carry, checks = state
                 carry = step(run_step, carry, t)
-                return t + 1, carry, checked(t + 1, carry, checks)
+                return t + 1, carry, _checked(t + 1, carry, checks, rtol, atol, sizes=sizes)
 
-            return jax.lax.while_loop(cond, body, state)
+            return jax.lax.while_loop(lambda s: (s[0] < steps) & ~_stops(s[2], sizes=sizes),
+                                      body, state)
 
         no = _carry_typed(jnp.zeros((), bool), mesh)
         state = (zero, (start, zero, zero), (no, no))
@@ -321,13 +205,98 @@ def stream(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f
             # The first step's blocks in smaller steps (the same blocks, the same points);
             # after them the whole steps go on from the second, its checks again at 2, 4,
             # ... whole steps.
-            _, carry, checks = walk(state, sizes.per_step // sizes.early_steps, sizes.early_steps)
-            state = (zero + 1, carry, checks)
-        _, carry, _ = walk(state, sizes.per_step, sizes.steps)
-    est = stream_estimate(*carry, sizes.replicas, active)
+            state = walk(state, sizes.per_step // sizes.early_steps, sizes.early_steps)
+            state = (zero + 1,) + state[1:]
+        carry = walk(state, sizes.per_step, sizes.steps)[1]
+    est = stream_estimate(*carry, sizes.replicas, ctx.active)
     if progress:  # (under a user's `jit`, this report closes the bar: `_progress`)
         _report(est, bar_total, mesh, last=True)
     return est
+
+
+def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f, sizes,
+             mesh, tolerant, progress, batched):
+    """`stream` on one device, outside `jit`: the same steps, each as three programs run
+    from Python, the points (`step_points`), the integrand's values (`values`, the only
+    program compiled for each integrand) and their moments (`step_moments`), so that a new
+    integrand compiles a small program where `stream` compiles the whole loop."""
+    ctx = _context(key, frozen, lo, hi, budget, min_replicas, sizes=sizes)
+    total = None if tolerant else sizes.budget
+    carry = _initial(ctx, sizes=sizes, f=f, batched=batched)
+
+    def step(carry, t, per_step):
+        x, points = _points(ctx, jnp.int32(t), sizes=sizes, per_step=per_step)
+        m = _moments(ctx, values(x, f=f, batched=batched), points, sizes=sizes)
+        carry = _accumulate_compiled(carry, *m)
+        if progress:
+            est = _estimate(carry, ctx.active, sizes=sizes)
+            report(est.mean, est.stderr, est.n, total=total, last=False)
+        return carry
+
+    if not tolerant:
+        steps = sizes.steps
+        if ctx.nblocks is not None:  # (the steps past the budget's blocks are skipped)
+            steps = min(steps, -(-int(ctx.nblocks) // sizes.per_step))
+        for t in range(steps):
+            carry = step(carry, t, sizes.per_step)
+    else:
+        no = np.asarray(False)
+        t, checks = 0, (no, no)
+
+        def walk(t, carry, checks, per_step, steps):
+            while t < steps and not bool(_stops(checks, sizes=sizes)):
+                carry = step(carry, t, per_step)
+                t += 1
+                checks = _check_compiled(jnp.int32(t), carry, checks, rtol, atol, sizes=sizes)
+            return t, carry, checks
+
+        if sizes.early_steps > 1:  # (as `stream`'s walks)
+            _, carry, checks = walk(t, carry, checks, sizes.per_step // sizes.early_steps,
+                                    sizes.early_steps)
+            t = 1
+        _, carry, _ = walk(t, carry, checks, sizes.per_step, sizes.steps)
+    est = _estimate(carry, ctx.active, sizes=sizes)
+    if progress:
+        report(est.mean, est.stderr, est.n, total=total, last=True)
+    return est
+
+
+# (The frozen density may hold Python numbers, a VEGAS+ allocation's strata: static, as
+# `filter_jit` holds them. None of these programs evaluates the integrand.)
+_context = eqx.filter_jit(context)
+_accumulate_compiled = jax.jit(_accumulate)
+_check_compiled = eqx.filter_jit(_checked)
+
+
+@eqx.filter_jit
+def _points(ctx, t, *, sizes, per_step):
+    return step_points(ctx, t, 0, sizes=sizes, per_step=per_step, devices=1)
+
+
+@eqx.filter_jit
+def _moments(ctx, fx, points, *, sizes):
+    return step_moments(ctx, fx, points, sizes=sizes)
+
+
+@eqx.filter_jit
+def _estimate(carry, active, *, sizes):
+    return stream_estimate(*carry, sizes.replicas, active)
+
+
+def _initial(ctx, *, sizes, f, batched):
+    """The empty carry a run starts from, as `stream`'s (NumPy zeros: no dispatch)."""
+    shapes = jax.eval_shape(lambda: _local(ctx, jnp.int32(0), 0, f=f, batched=batched,
+                                           sizes=sizes, per_step=sizes.per_step, devices=1)[0])
+    zero = np.zeros((), np.int32)
+    return jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes), zero, zero
+
+
+def _start(ctx, f, batched, sizes, mesh):
+    """The empty moments a run starts from (the shapes of a step's)."""
+    shapes = jax.eval_shape(lambda: _local(ctx, jnp.int32(0), 0, f=f, batched=batched,
+                                           sizes=sizes, per_step=sizes.per_step,
+                                           devices=mesh.size)[0])
+    return _empty_like(shapes)
 
 
 def stream_on_mesh(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f, mesh,
@@ -343,6 +312,8 @@ def stream_on_mesh(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=No
     args = (key, frozen, lo, hi, rtol, atol, budget, min_replicas)
     settings = dict(settings, f=f, mesh=mesh, batched=batched)
     if mesh.size == 1:
+        if all(is_concrete(a) for a in jax.tree.leaves((args, f))):
+            return stepwise(*args, **settings)
         return stream(*args, **settings)
     point = jnp.zeros((1,) + lo.shape, lo.dtype)
     captured = jax.make_jaxpr(lambda x: evaluate(f, x, batched))(point).consts

@@ -33,19 +33,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._compiled import per_integrand
+from .._checks import is_concrete
 from .._diagnostics import pareto_k, tail_of
 from .._fit._vegas import strata_per_axis
 from .._integrand import ratio
 from .._progress import report
 from .._stats import Estimate, estimate_fields, rounding_floor
-from ..fit import Integrand, VegasPlus, run_adaptation as _run_adaptation
+from ..fit import VegasPlus
 from ..proposals import Grid
+from ._blocks import values
 from ._sizes import BLOCK, MIN_BLOCKS_TO_STOP
 
-
-# Compiled once per integrand and sizes (eagerly, a scan would be traced on every call).
-run_adaptation = per_integrand(_run_adaptation)
 
 TRAINING_ROUNDS = 10  # VEGAS+ rounds that train the grid, at most (discarded)
 MAX_REFINE_ROUNDS = 32  # with a tolerance, adapting rounds after training; then a frozen stream
@@ -149,19 +147,23 @@ def tail_refining(budget: int, block: int) -> tuple[int, int]:
     return rounds, budget // rounds // 64 * 64
 
 
-@per_integrand
 def refine_finer(key, state, *, f, batched, rounds, size, progress=False):
     """`refine`'s rounds, all `rounds` of them of `size` points, from a trained `state`
     whose grid is first subdivided (`TAIL_GROWTH` times its bins, at most `MAX_TAIL_BINS`)
     and refined at that resolution from then on (`tail_refining`); the hypercubes' allocation
     starts even. Returns the average (an `Estimate`)."""
-    grid = state.grid
-    factor = max(1, min(TAIL_GROWTH, MAX_TAIL_BINS // grid.bins))
     init_key, key = jax.random.split(key)
-    finer = VegasPlus(diagnostics=False).init(init_key, grid.subdivided(factor), size)
+    finer = _finer(init_key, state, size=size)
     est, _ = refine(key, finer, 0.0, 0.0, f=f, batched=batched, rounds=rounds, tolerant=False,
                     progress=progress)
     return est
+
+
+@eqx.filter_jit
+def _finer(key, state, *, size):
+    grid = state.grid
+    factor = max(1, min(TAIL_GROWTH, MAX_TAIL_BINS // grid.bins))
+    return VegasPlus(diagnostics=False).init(key, grid.subdivided(factor), size)
 
 
 def training_rounds(budget: int, block: int) -> int:
@@ -180,11 +182,81 @@ def refining_rounds(budget: int, block: int, tolerant: bool) -> int:
 
 
 def train_vegas_plus(key, f, grid, rounds, block, batched):
-    """`rounds` VEGAS+ rounds of `block` points from `grid`: the trained state (estimates discarded,
-    so the rounds skip their diagnostics)."""
+    """`rounds` VEGAS+ rounds of `block` points from `grid`: the trained state (estimates
+    discarded, so the rounds skip their diagnostics)."""
     rule = VegasPlus(diagnostics=False)
-    _, state, _ = run_adaptation(rule, key, Integrand(f, batched), grid, rounds, block)
-    return state
+    return vegas_rounds(rule, key, start(rule, key, grid, block=block), rounds, f=f,
+                        batched=batched)[1]
+
+
+@eqx.filter_jit
+def start(rule, key, grid, *, block):
+    """`rule`'s first state on `grid` for rounds of `block` points (`VegasPlus.init`)."""
+    return rule.init(key, grid, block)
+
+
+def vegas_rounds(rule, key, state, rounds, *, f, batched, fixed=False, progress_total=None,
+                 done=0):
+    """`rounds` rounds of the VEGAS+ `rule` from `state`: `(their estimates, stacked; the state
+    after them; the last round's Samples)`; with `fixed`, each round's state held fixed for
+    derivatives (`fixed_for_derivatives`); with `progress_total`, each round's estimate sent
+    to the progress bar.
+
+    Traced, one `scan` of `rule.step`; outside `jit`, the same rounds from Python, each as
+    three programs, the points (`VegasPlus.propose`), the integrand's values (`values`, the
+    one compiled for each integrand) and the update (`VegasPlus.update`)."""
+    size = state.draw.u.shape[0]
+    if all(is_concrete(a) for a in jax.tree.leaves((key, state, f))):
+        parts, samples = [], None
+        for i in range(rounds):
+            x, points = _propose(rule, state)
+            state, est, samples = _update(rule, key, jnp.int32(i), state,
+                                          values(x, f=f, batched=batched), points, fixed=fixed)
+            parts.append(est)
+            if progress_total is not None:
+                report(est.mean, est.stderr, done + (i + 1) * size, total=progress_total,
+                       last=i == rounds - 1)
+        return _stacked(parts), state, samples
+
+    def one_round(state, i):
+        x, points = rule.propose(state)
+        state, est, samples = _updated(rule, key, i, state, evaluate_values(x, f, batched),
+                                       points, fixed)
+        if progress_total is not None:
+            jax.debug.callback(functools.partial(_report_round, total=progress_total),
+                               est.mean, est.stderr, done + (i + 1) * size, i == rounds - 1)
+        return state, (est, samples)
+
+    state, (parts, samples) = jax.lax.scan(one_round, state, jnp.arange(rounds))
+    return parts, state, jax.tree.map(lambda a: a[-1], samples)
+
+
+def evaluate_values(x, f, batched):
+    """The integrand at `x`, as `values` computes it (traced: inlined)."""
+    return values.__wrapped__(x, f=f, batched=batched)
+
+
+def _updated(rule, key, i, state, fx, points, fixed):
+    state, est, samples = rule.update(key, i, state, fx, points)
+    if fixed:  # (the next round's grid is fixed for its derivative)
+        state = fixed_for_derivatives(state)
+    return state, Estimate(**estimate_fields(est)), samples
+
+
+# (As `filter_jit` holds them, the rule's Python numbers are constants, as when traced.)
+@eqx.filter_jit
+def _propose(rule, state):
+    return rule.propose(state)
+
+
+@eqx.filter_jit
+def _update(rule, key, i, state, fx, points, *, fixed):
+    return _updated(rule, key, i, state, fx, points, fixed)
+
+
+@jax.jit
+def _stacked(parts):
+    return jax.tree.map(lambda *a: jnp.stack(a), *parts)
 
 
 def fixed_for_derivatives(tree):
@@ -260,55 +332,71 @@ def _report_round(mean, stderr, done, last, *, total: int) -> None:
     report(mean, stderr, done, total=total, last=bool(last))
 
 
-@per_integrand
 def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=False):
-    """Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, averaged (`average_rounds`).
+    r"""Up to `rounds` VEGAS+ rounds from a trained `state`, adapting, averaged (`average_rounds`).
 
-    Without a tolerance all `rounds` run (a `scan`); with one, the rounds stop
-    once the average's standard error meets $\\max(atol, rtol\\,|mean|)$,
-    after at least `MIN_ROUNDS_TO_STOP` rounds.
-    Returns the average (an `Estimate`) and the final state. With `progress`, each
+    Without a tolerance all `rounds` run; with one, the rounds stop once the average's
+    standard error meets $\max(atol, rtol\,|mean|)$, after at least `MIN_ROUNDS_TO_STOP`
+    rounds. Returns the average (an `Estimate`) and the final state. With `progress`, each
     round's estimate goes to the progress bar (as `jaxmc.fit.adapt` shows them).
     """
     # The rounds skip their diagnostics; the last round's values give the average's.
     # A grid refined at fewer bins than it holds goes on so (`VegasPlus.coarse`, in the state).
     n = state.draw.u.shape[0]
     rule = VegasPlus(diagnostics=False, coarse_bins=grid_bins(n))
-    integrand = Integrand(f, batched)
-    state_carry, static = eqx.partition(state, eqx.is_array)
-
-    def one_round(carry, i):
-        new_state, est, samples = rule.step(key, i, eqx.combine(carry[0], static), integrand)
-        if progress:
-            jax.debug.callback(functools.partial(_report_round, total=rounds * n),
-                               est.mean, est.stderr, (i + 1) * n, i == rounds - 1)
-        # The next round's grid is fixed for its derivative (`fixed_for_derivatives`).
-        new_state = fixed_for_derivatives(new_state)
-        carry = (eqx.partition(new_state, eqx.is_array)[0], (samples.fx, samples.log_q))
-        return carry, Estimate(**estimate_fields(est))
-
-    def last_values(last):  # f/p of the last round
-        return ratio(last[0], jnp.exp(last[1]))[0]
-
-    no_values = jax.eval_shape(lambda c: one_round((c, None), jnp.int32(0))[0][1], state_carry)
-    carry = (state_carry, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), no_values))
+    total = rounds * n if progress else None
     if not tolerant:
-        (state_carry, last), parts = jax.lax.scan(one_round, carry, jnp.arange(rounds))
-        return average_rounds(parts, rounds, last_values(last)), eqx.combine(state_carry, static)
-
-    # A buffer for every round; `average_rounds` reads only the first `done`.
-    shape = jax.eval_shape(lambda c: one_round(c, jnp.int32(0))[1], carry)
-    empty = jax.tree.map(lambda s: jnp.zeros((rounds,) + s.shape, s.dtype), shape)
+        parts, state, last = vegas_rounds(rule, key, state, rounds, f=f, batched=batched,
+                                          fixed=True, progress_total=total)
+        return _averaged(parts, rounds, last), state
+    if all(is_concrete(a) for a in jax.tree.leaves((key, state, f, rtol, atol))):
+        # Round by round from Python, as the traced loop below runs them.
+        parts = None
+        for i in range(rounds):
+            x, points = _propose(rule, state)
+            state, est, last = _update(rule, key, jnp.int32(i), state,
+                                       values(x, f=f, batched=batched), points, fixed=True)
+            parts, met = _recorded(parts, est, jnp.int32(i), rtol, atol, rounds=rounds)
+            if progress:
+                report(est.mean, est.stderr, (i + 1) * n, total=total, last=i == rounds - 1)
+            if bool(met):
+                break
+        return _averaged(parts, i + 1, last), state
 
     def body(loop):
-        i, carry, parts, _ = loop
-        carry, est = one_round(carry, i)
-        parts = jax.tree.map(lambda buffer, x: buffer.at[i].set(x), parts, est)
-        est = average_rounds(parts, i + 1)
-        met = jnp.all(est.stderr <= jnp.maximum(atol, rtol * jnp.abs(est.mean)))
-        return i + 1, carry, parts, met & (i + 1 >= MIN_ROUNDS_TO_STOP)
+        i, state, parts, _, _ = loop
+        x, points = rule.propose(state)
+        state, est, last = _updated(rule, key, i, state, evaluate_values(x, f, batched), points,
+                                    True)
+        if progress:
+            jax.debug.callback(functools.partial(_report_round, total=total),
+                               est.mean, est.stderr, (i + 1) * n, i == rounds - 1)
+        parts, met = _recorded(parts, est, i, rtol, atol, rounds=rounds)
+        return i + 1, state, parts, met, last
 
-    done, (state_carry, last), parts, _ = jax.lax.while_loop(
-        lambda loop: (loop[0] < rounds) & ~loop[3], body, (jnp.int32(0), carry, empty, False)
-    )
-    return average_rounds(parts, done, last_values(last)), eqx.combine(state_carry, static)
+    shapes = jax.eval_shape(lambda s: _updated(rule, key, 0, s, evaluate_values(
+        rule.propose(s)[0], f, batched), rule.propose(s)[1], True), state)
+    empty = jax.tree.map(lambda a: jnp.zeros((rounds,) + a.shape, a.dtype), shapes[1])
+    no_last = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes[2])
+    done, state, parts, _, last = jax.lax.while_loop(
+        lambda loop: (loop[0] < rounds) & ~loop[3], body,
+        (jnp.int32(0), state, empty, jnp.asarray(False), no_last))
+    return _averaged(parts, done, last), state
+
+
+@functools.partial(jax.jit, static_argnames="rounds")
+def _recorded(parts, est, i, rtol, atol, *, rounds):
+    """`parts` (a buffer of `rounds` rounds; `None` to start one) with round `i`'s estimate,
+    and whether their average meets the tolerance (after `MIN_ROUNDS_TO_STOP` rounds)."""
+    if parts is None:
+        parts = jax.tree.map(lambda a: jnp.zeros((rounds,) + a.shape, a.dtype), est)
+    parts = jax.tree.map(lambda buffer, x: buffer.at[i].set(x), parts, est)
+    average = average_rounds(parts, i + 1)
+    met = jnp.all(average.stderr <= jnp.maximum(atol, rtol * jnp.abs(average.mean)))
+    return parts, met & (i + 1 >= MIN_ROUNDS_TO_STOP)
+
+
+@jax.jit
+def _averaged(parts, done, last):
+    """The rounds' average, its Pareto k-hat from the last round's values $f/p$."""
+    return average_rounds(parts, done, ratio(last.fx, jnp.exp(last.log_q))[0])

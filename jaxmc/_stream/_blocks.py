@@ -1,0 +1,195 @@
+r"""A stream's blocks: their points, and the moments of the integrand's values at them.
+
+A loop step takes `per_step` blocks (or a device's share of them): `step_points` draws
+their points (and what `step_moments` needs of them: densities, hypercubes, which blocks
+count), the integrand is evaluated on all of them at once (`values`), and `step_moments`
+reduces its values to the step's `Moments`. Only `values` evaluates the integrand: the
+other two are compiled once per shape and serve every integrand, and a stream run step by
+step outside `jit` compiles only `values` for a new integrand. Traced, the three are one
+program, the same operations.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .. import _random
+from .._box import to_box
+from .._compiled import per_integrand
+from .._fit._vegas import stratified_unit_points
+from .._integrand import evaluate, ratio
+from .._points._common import uint32_to_unit
+from .._points._registry import unit_points
+from .._points._sobol import sobol_block, sobol_scramble
+from .._stats import Moments, block_moments, merge_all, tail_of
+
+
+def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
+    """Block `position` (`2**log2_size` points on $[0,1)^d$) of the Sobol' sequence
+    scrambled by `scramble = sobol_scramble(key, d)`: one QMC replica's next net block."""
+    return uint32_to_unit(sobol_block(*scramble, position, log2_size), dtype, centred=True)
+
+
+class Context(eqx.Module):
+    """What every block of a stream reads: its key, the frozen density (a proposal, a map,
+    or a VEGAS+ grid and allocation), the box; for QMC its replicas' scrambles, and for a
+    budget given when it runs, its replicas, their blocks each and the blocks in all."""
+
+    key: jax.Array
+    frozen: object
+    lo: jax.Array
+    hi: jax.Array
+    scrambles: object = None
+    active: jax.Array | None = None
+    per_replica: jax.Array | None = None
+    nblocks: jax.Array | None = None
+
+
+def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
+    """The stream's `Context` (for `sizes.dynamic` QMC, `budget` evaluations in nets that
+    `min_replicas`, default `sizes.min_replicas`, fit in; both may be traced)."""
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    scrambles = active = per_replica = nblocks = None
+    if sizes.method == "qmc":
+        scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(jax.random.split(key, sizes.replicas))
+    if sizes.dynamic:
+        # Nets of the largest power of two of points that `min_replicas` fit in the budget,
+        # as many replicas as fit; each walked block by block, replica after replica.
+        budget = jnp.asarray(budget, jnp.int32)
+        fewest = sizes.min_replicas if min_replicas is None else min_replicas
+        net = jnp.left_shift(1, 31 - jax.lax.clz(budget // fewest))
+        active, per_replica = budget // net, net // sizes.block
+        nblocks = active * per_replica
+    return Context(key, frozen, lo, hi, scrambles, active, per_replica, nblocks)
+
+
+def replica_of(ctx: Context, b, *, sizes):
+    """A QMC block's replica and its position in the replica's net."""
+    if sizes.dynamic:
+        return b // ctx.per_replica, b % ctx.per_replica
+    return b % sizes.replicas, b // sizes.replicas
+
+
+def blocks_of_step(ctx: Context, t, device, *, sizes, per_step, devices):
+    """Device `device`'s blocks of step `t` (slots `[j * per_device, (j + 1) * per_device)`
+    of the step's `per_step`), and whether each is one of the stream's."""
+    per_device = -(-per_step // devices)
+    slot = device * per_device + jnp.arange(per_device, dtype=jnp.int32)
+    blocks = t * per_step + slot
+    inside = (slot < per_step) & (blocks < sizes.blocks)
+    if ctx.nblocks is not None:
+        inside = inside & (blocks < ctx.nblocks)
+    return blocks, inside
+
+
+def _block_points(ctx: Context, b, *, sizes):
+    """Block `b`'s points (as the integrand takes them) and what its moments need of them:
+    their density, or for VEGAS+ rounds their log-density and hypercubes."""
+    method, lo, hi = sizes.method, ctx.lo, ctx.hi
+    d = 1 if lo.ndim == 0 else lo.shape[0]
+    dtype = lo.dtype
+    key = jax.random.fold_in(ctx.key, b)
+    if method == "adaptive":  # a VEGAS+ round on the frozen grid and allocation
+        grid, counts, strata = ctx.frozen
+        draw = stratified_unit_points(_random.uniform(key, (sizes.block, grid.dim), dtype),
+                                      counts, strata)
+        x, log_p, _ = grid.map_with_bins(draw.u)
+        return (x if grid.event_ndim else x[:, 0]), (log_p, draw.cube)
+    if method == "importance":  # from the frozen proposal
+        return ctx.frozen.sample(key, sizes.block)
+    if method == "qmc":
+        r, position = replica_of(ctx, b, sizes=sizes)
+        u = replica_points((ctx.scrambles[0][r], ctx.scrambles[1][r]), position,
+                           sizes.block.bit_length() - 1, dtype)
+        if ctx.frozen is not None:  # scrambled nets through a trained grid's map
+            x, log_p = ctx.frozen.map(u)
+            return (x if ctx.frozen.event_ndim else x[:, 0]), jnp.exp(log_p)
+    elif method == "plain":
+        u = unit_points("uniform", key, sizes.block, d, dtype=dtype)
+    else:
+        # Drawn in the default float dtype, then cast: this keeps the numbers of earlier
+        # versions for float32 bounds under x64 (a float32 draw truncates, not rounds).
+        u = unit_points("stratified", key, sizes.block, d, counts=sizes.strata).astype(dtype)
+    x = to_box(u if lo.ndim else u[:, 0], lo, hi)
+    return x, jnp.broadcast_to(1.0 / jnp.prod(hi - lo), (sizes.block,))
+
+
+def step_points(ctx: Context, t, device, *, sizes, per_step, devices):
+    """The points of device `device`'s blocks of step `t`, all of them `(blocks * block, ...)`
+    as the integrand takes them, and `(blocks, inside, what their moments need)`."""
+    blocks, inside = blocks_of_step(ctx, t, device, sizes=sizes, per_step=per_step,
+                                    devices=devices)
+    x, aux = jax.vmap(lambda b: _block_points(ctx, b, sizes=sizes))(blocks)
+    return jnp.reshape(x, (-1,) + x.shape[2:]), (blocks, inside, aux)
+
+
+@per_integrand
+def values(x, *, f, batched):
+    """The integrand at points `x` `(n, ...)`: the one program a stream run step by step
+    compiles for each integrand."""
+    return evaluate(f, x, batched)
+
+
+def step_moments(ctx: Context, fx, points, *, sizes):
+    """The step's `Moments` from the integrand's values `fx` at its points (`step_points`):
+    `(moments, evaluations, non-finite values)`."""
+    blocks, inside, aux = points
+    fx = jnp.reshape(fx, blocks.shape + (-1,) + fx.shape[1:])
+    m, evaluations, bad, values_ = jax.vmap(
+        lambda b, i, f_b, a: _block_moments(ctx, b, i, f_b, a, sizes=sizes))(blocks, inside, fx, aux)
+    m = merge_all(m)
+    if values_ is not None:
+        # One search for the largest values among all the step's blocks: a block's own
+        # search and the merges of their tails cost twice as much (on a CPU).
+        y, valid = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + a.shape[2:]), values_)
+        m = m._replace(tail=tail_of(y, valid))
+    return m, jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
+
+
+def _block_moments(ctx: Context, b, inside, fx, aux, *, sizes):
+    """Block `b`'s moments from its values `fx`: `(moments, evaluations, non-finite values,
+    (its values f/p and which count) or None)`."""
+    method = sizes.method
+    dtype = ctx.lo.dtype
+    if method == "adaptive":
+        # One VEGAS+ round: one observation, its stratified estimate v sum_h mean_h (§4.2),
+        # as v sum_i y_i / n_{h(i)}; the stream's variance comes from the rounds' spread.
+        log_p, cube = aux
+        counts = ctx.frozen[1]
+        y, bad = ratio(fx, jnp.exp(log_p))
+        per_point = 1.0 / (counts.shape[0] * jnp.maximum(counts, 1).astype(y.dtype))[cube]
+        mean = jnp.sum(y * jnp.reshape(per_point, (-1,) + (1,) * (y.ndim - 1)), axis=0)
+        # The diagnostics are of the values y = f/p (as `stats.stratified_estimate`'s).
+        m = Moments(jnp.ones((), y.dtype), mean, jnp.zeros_like(mean), tail_of(y))
+        # Slots past the budget (the last step's spare ones) are dropped.
+        m = jax.tree.map(lambda a: jnp.where(inside, a, jnp.zeros_like(a)), m)
+        return (m, jnp.where(inside, sizes.block, 0).astype(jnp.int32),
+                jnp.where(inside, jnp.sum(bad, dtype=jnp.int32), 0), None)
+    y, bad = ratio(fx, aux)
+    index = b * sizes.block + jnp.arange(sizes.block)
+    limit = sizes.budget if ctx.nblocks is None else ctx.nblocks * sizes.block
+    valid = (index < limit) & inside
+    m = block_moments(y, valid, with_tail=False)  # the step's tail comes from all its blocks
+    if method not in ("plain", "importance"):
+        # The block is one randomisation: one observation, its mean.
+        unit = jnp.where(m.count > 0, 1.0, 0.0).astype(dtype)
+        m = Moments(unit, m.mean, jnp.zeros_like(m.m2), m.tail)
+    if method == "qmc":
+        # Its replica's running mean weighs it by its points.
+        m = _one_hot_moments(m._replace(count=m.count * sizes.block),
+                             replica_of(ctx, b, sizes=sizes)[0], sizes.replicas)
+    evaluations = jnp.sum(valid, dtype=jnp.int32)
+    return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
+
+
+def _one_hot_moments(m: Moments, slot, slots: int) -> Moments:
+    """Place a block's moments in row `slot` of `slots` rows (the others empty)."""
+    hot = jnp.arange(slots) == slot
+    count = jnp.where(hot, m.count, 0.0).astype(m.mean.dtype)
+
+    def place(a):
+        return jnp.where(jnp.reshape(hot, (slots,) + (1,) * a.ndim), a[None], jnp.zeros_like(a)[None])
+
+    return Moments(count, place(m.mean), place(m.m2), m.tail)
