@@ -6,6 +6,6 @@ results, the timer `time_call`) and `problems` (the integrands, each written onc
 for `jax.numpy` and `numpy`).
 """
 
-SUITES = ("throughput", "points", "proposals", "convergence", "adaptive", "auto", "render", "coverage")
+SUITES = ("throughput", "points", "proposals", "convergence", "adaptive", "auto", "plans", "render", "coverage")
 # Suites that have no quick setting (their point is many seeds): `--quick` skips them.
-FULL_ONLY = ("coverage",)
+FULL_ONLY = ("plans", "coverage")

@@ -42,6 +42,12 @@ from ..proposals import Mixture
 MODE_STARTS = 16  # the QMC pilot's best points the ascent starts from
 MODE_STEPS = 32  # BFGS steps at most per start (each evaluates f and its gradient)
 MODE_COMPONENTS = 2  # Gaussians added at modes, at most
+
+# `optx.minimise` unwrapped from its `filter_jit`: the search always runs traced (inside
+# the program compiled for the integrand), where that `jit` adds nothing but an entry in
+# JAX's trace cache that holds the objective, and with it the integrand, for the life of
+# the process.
+_minimise = optx.minimise.__wrapped__
 UNDERCOVERED = 10.0  # |f(m)| / (I q(m)) above which a mode gets a Gaussian of its own
 MIN_SHARE, MAX_SHARE = 0.05, 0.5  # a new Gaussian's share of the Gaussians
 
@@ -79,7 +85,7 @@ def find_modes(f, batched, lo, hi, x, magnitude):
         t = jnp.clip((x0 - lo) / width, 1e-6, 1 - 1e-6)
         z0 = jnp.log(t) - jnp.log1p(-t)
         objective = lambda z, _: -_log_magnitude(f, batched, to_box(z))  # noqa: E731
-        solution = optx.minimise(objective, optx.BFGS(rtol=1e-5, atol=1e-5), z0,
+        solution = _minimise(objective, optx.BFGS(rtol=1e-5, atol=1e-5), z0,
                                  max_steps=MODE_STEPS, throw=False)
         mode = to_box(solution.value)
         log_f = _log_magnitude(f, batched, mode)

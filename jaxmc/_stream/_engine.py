@@ -222,11 +222,13 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
     integrand compiles a small program where `stream` compiles the whole loop."""
     ctx = _context(key, frozen, lo, hi, budget, min_replicas, sizes=sizes)
     total = None if tolerant else sizes.budget
-    carry = _initial(ctx, sizes=sizes, f=f, batched=batched)
+    carry = None  # (zeros shaped as the first step's moments: tracing for them costs more)
 
     def step(carry, t, per_step):
         x, points = _points(ctx, jnp.int32(t), sizes=sizes, per_step=per_step)
         m = _moments(ctx, values(x, f=f, batched=batched), points, sizes=sizes)
+        if carry is None:
+            carry = _zeros_like(m)
         carry = _accumulate_compiled(carry, *m)
         if progress:
             est = _estimate(carry, ctx.active, sizes=sizes)
@@ -255,6 +257,8 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
                                     sizes.early_steps)
             t = 1
         _, carry, _ = walk(t, carry, checks, sizes.per_step, sizes.steps)
+    if carry is None:  # (no step ran)
+        carry = _initial(ctx, sizes=sizes, f=f, batched=batched)
     est = _estimate(carry, ctx.active, sizes=sizes)
     if progress:
         report(est.mean, est.stderr, est.n, total=total, last=True)
@@ -284,11 +288,18 @@ def _estimate(carry, active, *, sizes):
 
 
 def _initial(ctx, *, sizes, f, batched):
-    """The empty carry a run starts from, as `stream`'s (NumPy zeros: no dispatch)."""
+    """The empty carry a run starts from, as `stream`'s."""
     shapes = jax.eval_shape(lambda: _local(ctx, jnp.int32(0), 0, f=f, batched=batched,
-                                           sizes=sizes, per_step=sizes.per_step, devices=1)[0])
+                                           sizes=sizes, per_step=sizes.per_step, devices=1))
+    return _zeros_like(shapes)
+
+
+def _zeros_like(step):
+    """The empty carry shaped as a step's `(moments, evaluations, non-finite values)`
+    (NumPy zeros: no dispatch)."""
+    moments, _, _ = step
     zero = np.zeros((), np.int32)
-    return jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes), zero, zero
+    return jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), moments), zero, zero
 
 
 def _start(ctx, f, batched, sizes, mesh):

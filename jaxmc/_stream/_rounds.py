@@ -1,4 +1,5 @@
-r"""`integrate(method="adaptive")`: a VEGAS+ grid trained, refined as it is used, then streamed.
+r"""VEGAS+ rounds: a grid trained, then refined as it is used (`jaxmc.methods.Adaptive`,
+and `auto`'s grid stage).
 
 Three stages of VEGAS+ rounds (`jaxmc.fit.VegasPlus`) of one size, `adaptive_block` (but
 see 2):

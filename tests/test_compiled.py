@@ -1,0 +1,43 @@
+"""A long session: the programs compiled for integrands that are no longer used are freed.
+
+JAX keeps a compiled program for the life of the process unless its cache lets go of
+it; a session that integrates many integrands would otherwise run out of memory
+mappings. Here the cache is made small, so that a few integrands through `auto`'s whole
+pilot (QMC's nets, the grid, the mixture and its mode search) overflow it: the first
+integrand must then be released by every program that evaluated it.
+"""
+
+import gc
+import weakref
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+import jaxmc
+from jaxmc import _compiled
+
+from .helpers import box
+
+
+def _peak(centre):
+    def f(x):
+        return jnp.exp(-jnp.sum((x - centre) ** 2) / 0.01)
+
+    return f
+
+
+@pytest.mark.parametrize("n", [2**12, 2**15])  # QMC alone; the whole pilot
+def test_an_integrand_no_longer_used_is_released(monkeypatch, n):
+    monkeypatch.setattr(_compiled, "MAX_PROGRAMS", 4)
+    lo, hi = box(2)
+    first = _peak(0.31)
+    est = jaxmc.integrate(jax.random.key(0), first, lo, hi, n=n)
+    assert n != 2**15 or est.pilot.stages[2], "the grid's stage should have run"
+    released = weakref.ref(first)
+    del first, est
+    for i in range(4):
+        jax.block_until_ready(jaxmc.integrate(jax.random.key(i), _peak(0.4 + 0.05 * i), lo,
+                                              hi, n=n))
+    gc.collect()
+    assert released() is None
