@@ -353,11 +353,7 @@ def variance_out_of_range(est: Any) -> jax.Array:
     float32 ($10^{154}$, $10^{-154}$ in float64) cannot be held, and squares of values
     $f/p$ beyond those bounds over- or underflow on the way to it. A variance of 0 then
     claims an exact mean, which no estimate can (its rounding floor, `rounding_floor` times
-    the mean, underflowed as well); an infinite one says nothing. Measured in float32 on a
-    4-D Gaussian peak scaled by $10^{-12}$: $9.87 \times 10^{-16}$ reported with a standard
-    error of 0 (a variance near $10^{-42}$, flushed to 0); scaled by $10^{25}$, an infinite
-    one (VEGAS rounds square values in units of their largest, `_vegas._unit`, so that
-    their grid still adapts)."""
+    the mean, underflowed as well); an infinite one says nothing."""
     # (Below the smallest normal number a variance is subnormal, with a few bits, or flushed
     # to 0, as the CPU may and GPUs do.)
     tiny = jnp.finfo(jnp.result_type(est.variance, float)).tiny
@@ -374,7 +370,8 @@ def unreliable(est: Any) -> jax.Array:
     $\\hat k$ above 0.7 with an effective sample size below n/10, dropped non-finite values,
     a variance outside its dtype's range (`variance_out_of_range`), a structured variance
     replaced by a much larger i.i.d. bound (`bounded_variance`); for combined rounds a $q$
-    below 1e-3; for a tolerance run an unmet tolerance.
+    below 1e-3; for a tolerance run `converged` False; for an `Expectation` an unreliable
+    evidence `norm`.
     Jittable and vmappable (map it over a batch of estimates).
     """
     return jnp.any(jnp.stack([jnp.any(flag) for flag in _flags(est).values()]))
@@ -411,8 +408,18 @@ def _flags(est: Any) -> dict[str, jax.Array]:
     if hasattr(est, "q"):
         flags[f"the combined rounds disagree (q < {MIN_Q:g})"] = est.q < MIN_Q
     if getattr(est, "converged", None) is not None:
-        flags["the tolerance was not met within the budget"] = ~jnp.asarray(est.converged)
+        flags["the tolerance was not met, or its error bar is not to be trusted"] = (
+            ~jnp.asarray(est.converged))
+    norm = getattr(est, "norm", None)  # an `Expectation`'s evidence: a ratio's denominator
+    if norm is not None:
+        flags["the evidence `norm` is unreliable (`reliability_reasons(est.norm)` says why; `log_norm` holds it where it under- or overflows)"] = (
+            jnp.any(jnp.stack([jnp.any(flag) for flag in _flags(norm).values()])))
     return flags
+
+
+def trusted(est: Any) -> jax.Array:
+    """`~unreliable(est)`, in one compiled program when run eagerly."""
+    return ~jnp.any(_any_flags(est)[1])
 
 
 def reliability_reasons(est: Any) -> list[str]:

@@ -102,12 +102,12 @@ def _locate(x: jax.Array, lo: jax.Array, hi: jax.Array, n: int):
 
 
 class Piecewise1D(eqx.Module):
-    r"""Piecewise-constant density on $[lo, hi]$ proportional to `values` (lecture §3.1).
+    r"""Piecewise-constant density on $[lo, hi]$ proportional to `values` (PBRT 3rd ed. §13.3.1).
 
     With $n$ cells of width $\Delta = (hi - lo)/n$ and $f(x) = v_i$ on cell $i$,
     the density is $p(x) = v_i / I$ with $I = \sum_i v_i \Delta$ (`integral`).
     Its CDF is piecewise linear through $P(lo + i\Delta) = \sum_{j<i} v_j /
-    \sum_j v_j$, so the inversion $X = P^{-1}(U)$ of lecture §3.1 is a binary
+    \sum_j v_j$, so the inversion $X = P^{-1}(U)$ (PBRT 3rd ed. §13.3.1) is a binary
     search for the cell and a linear interpolation inside it. Cells with
     $v_i = 0$ are never sampled.
 
@@ -184,7 +184,7 @@ class Piecewise2D(eqx.Module):
     column $i$ (the $x$ axis), like an image or an environment map. The density
     is $p(x, y) = v_{ji} / I$ with $I = \sum_{ji} v_{ji} \Delta_x \Delta_y$
     (`integral`). Sampling factors it as $p(x, y) = p(y)\,p(x \mid y)$ and
-    inverts both CDFs (lecture §3.1): the marginal $p(y) \propto \sum_i v_{ji}$
+    inverts both CDFs (PBRT 3rd ed. §13.3.1): the marginal $p(y) \propto \sum_i v_{ji}$
     picks the row from `u[..., 1]`, the row's conditional picks $x$ from
     `u[..., 0]` (PBRT's `Distribution2D`). For a latitude-longitude
     environment map, multiply `values` by $\sin\theta$ of each row first and
@@ -249,7 +249,7 @@ class Piecewise2D(eqx.Module):
 
 
 # ---------------------------------------------------------------------------
-# rejection (lecture §3.2)
+# rejection (PBRT 3rd ed. §13.3.2)
 
 
 def rejection(
@@ -261,7 +261,7 @@ def rejection(
     max_rounds: int = 32,
     batch_size: int | None = None,
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    r"""Rejection sampling (lecture §3.2) in fixed shapes, so it works under `jit`.
+    r"""Rejection sampling (PBRT 3rd ed. §13.3.2) in fixed shapes, so it works under `jit`.
 
     Each round proposes `batch_size` candidates (default `n`) with
     `propose(key, m)` and keeps those where `accept(key, x)` is True, filling
@@ -333,7 +333,7 @@ def rejection(
 def disk_rejection(
     key: jax.Array, n: int, *, max_rounds: int = 32
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    r"""Uniform points on the unit disk by rejection from $[-1, 1]^2$ (lecture §3.2).
+    r"""Uniform points on the unit disk by rejection from $[-1, 1]^2$ (PBRT 3rd ed. §13.3.2).
 
     Propose uniformly on the square and keep points with $x^2 + y^2 < 1$; the
     efficiency is $\pi r^2 / 4 r^2 = \pi/4 \approx 78.5\%$. Returns

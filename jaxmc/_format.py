@@ -21,7 +21,13 @@ mean is shown only to the precision the error allows.
 Special cases: a zero error is written `(0)` after the mean in Python's `g`
 form, 6 significant digits (`1.5(0)`, `1(0)e-05`); a mean or an error that is
 NaN or infinite is written `m ± s` (`nan ± 1`, `1 ± inf`), and so is an error
-below the resolution of a float64 mean (more than 17 significant digits).
+below the resolution of a float64 mean (more than 17 significant digits), the mean
+with every digit it has (`1000000.5 ± 8.9e-10`).
+
+An error bar of fewer than 10 degrees of freedom (the spread of a few QMC replicas)
+is not Gaussian: mean ± 2 standard errors covers 82% of the time with 2 degrees of
+freedom, not 95%. `str` of such an estimate says so, `0.9977(42) [dof 2]`;
+`Estimate.interval` gives Student's $t$ interval.
 
 Besides the notation, this module writes the other texts of estimates:
 their `str` (the notation) and `repr` (the numbers, not array shapes), and the
@@ -42,6 +48,9 @@ import jax.numpy as jnp
 import numpy as np
 
 
+FEW_DOF = 10  # below this, `str` shows the degrees of freedom (Student's t, not Gaussian)
+
+
 def compact(mean: float, stderr: float) -> str:
     """`mean` and its standard error `stderr` in the compact notation (see the module docstring)."""
     mean, stderr = float(mean), abs(float(stderr))
@@ -58,8 +67,8 @@ def compact(mean: float, stderr: float) -> str:
         if m == 0:
             m = abs(m)  # no "-0.00"
         lead = max(m.adjusted(), s.adjusted())  # the leading digit's place
-        if lead - last >= 17:  # finer than a float64 resolves: the digits would be noise
-            return f"{mean:g} ± {stderr:.2g}"
+        if lead - last >= 17:  # finer than a float64 resolves: the mean's every digit
+            return f"{mean!r} ± {stderr:.2g}"
         if last >= 1 or lead < -4:
             return _with_error(m.scaleb(-lead), s.scaleb(-lead)) + f"e{lead:+03d}"
         return _with_error(m, s)
@@ -138,10 +147,15 @@ def concrete(tree: Any) -> bool:
 
 
 def estimate_str(e) -> str:
-    """An `Estimate`'s mean and standard error in the compact notation (its `repr` if traced)."""
+    """An `Estimate`'s mean and standard error in the compact notation, with `[dof N]` below
+    `FEW_DOF` degrees of freedom (its `repr` if traced)."""
     if not concrete(e):
         return repr(e)
-    return compact_array(e.mean, np.sqrt(np.asarray(e.variance, float)))
+    text = compact_array(e.mean, np.sqrt(np.asarray(e.variance, float)))
+    dof = np.asarray(getattr(e, "dof", np.inf), float)
+    if np.any(dof < FEW_DOF):
+        text += f" [dof {np.min(dof):.0f}]"
+    return text
 
 
 def estimate_repr(e, base: type) -> str:

@@ -82,8 +82,12 @@ def evaluate(f: Callable, x: jax.Array, batched: bool, name: str = "f") -> jax.A
                 where = "a batch of points" if batched else "one point"
                 how = f" as {name}(x, args)" if isinstance(f, WithArgs) else ""
                 scalar = " (scalar bounds `lo`, `hi` give scalar points)" if x.ndim == 1 else ""
+                # (Indexing a point as a batch, x[:, 0] or axis=1, fails so.)
+                hint = ("; an integrand written for a batch of points of shape (m, d) needs "
+                        "batched=True" if not batched and isinstance(error, (IndexError, ValueError))
+                        else "")
                 error.add_note(f"(raised by the integrand `{name}`, which jaxmc calls{how} on {where} "
-                               f"x of shape {point} and dtype {x.dtype}{scalar})")
+                               f"x of shape {point} and dtype {x.dtype}{scalar}{hint})")
             raise
 
     y = _values(call(x), name) if batched else jax.vmap(lambda xi: _values(call(xi), name))(x)

@@ -1,9 +1,9 @@
 r"""Estimates with error bars, their combination, and mergeable running moments.
 
 An `Estimate` is what every estimator returns: the integral estimate, the
-estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$,
-eq. 13 of the lecture), the number of integrand evaluations and the number of
-them whose value was not finite.
+estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$;
+Owen, *Monte Carlo theory, methods and examples*, ch. 2), the number of integrand
+evaluations and the number of them whose value was not finite.
 
 `Moments` are the sufficient statistics `(count, mean, m2)` of a stream of
 values, where `m2` is the sum of squared deviations from the mean. Two sets

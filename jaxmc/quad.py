@@ -1,4 +1,5 @@
-r"""Deterministic quadrature baselines (eq. 1, 2 of the lecture).
+r"""Deterministic quadrature baselines (Davis & Rabinowitz, *Methods of Numerical
+Integration*, 2nd ed., 1984).
 
 Every rule here has the form of eq. 1, a weighted sum of integrand values at
 fixed nodes,
@@ -21,7 +22,7 @@ points.
 $4$) needs $N = n^d$ evaluations on the tensor grid, so in terms of
 evaluations its error is $O(N^{-r/d})$: Simpson's rule in $d = 8$ converges
 like $N^{-1/2}$, no better than Monte Carlo, whose error is $O(N^{-1/2})$ in
-any dimension (§1.2; the lecture writes the exponents the other way round).
+any dimension (Owen, *Monte Carlo theory, methods and examples*, ch. 2).
 These functions are baselines for that comparison, not adaptive integrators.
 
 All functions follow the estimators' conventions: `f` is written for one point

@@ -1,12 +1,12 @@
 r"""Estimates with error bars, their diagnostics and combination, and mergeable running moments.
 
 An `Estimate` is what every estimator returns: the integral estimate, the
-estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$,
-eq. 13 of the lecture), the evaluation counts, and diagnostics of whether the
-error bar can be believed (`ess`, `n_nonzero`, `pareto_k`; `unreliable` and
-`reliability_reasons` read them). `combine` merges independent estimates by
-inverse-variance weights, as vegas does across its iterations. The spread of
-a few replicas is an error bar with few degrees of freedom (`Estimate.dof`):
+estimated variance *of that estimate* (for $n$ i.i.d. samples $\sigma^2/n$;
+Owen, *Monte Carlo theory, methods and examples*, ch. 2), the evaluation counts, and
+diagnostics of whether the error bar can be believed (`ess`, `n_nonzero`,
+`pareto_k`; `unreliable` and `reliability_reasons` read them). `combine` merges
+independent estimates by inverse-variance weights, as vegas does across its iterations.
+The spread of a few replicas is an error bar with few degrees of freedom (`Estimate.dof`):
 its intervals use Student's t (`student_t_quantile`). `Moments` are
 the mergeable sufficient statistics `(count, mean, m2)` of a stream of values
 (Chan, Golub and LeVeque's update: `moments`, `merge`, `merge_all`).

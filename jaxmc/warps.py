@@ -1,6 +1,6 @@
-r"""Warps: maps from the unit cube $[0,1)^k$ to other domains (lecture §3.1).
+r"""Warps: maps from the unit cube $[0,1)^k$ to other domains (PBRT 3rd ed. §13.3.1).
 
-Every warp is the *inversion method* of lecture §3.1: write the target density
+Every warp is the *inversion method* (PBRT 3rd ed. §13.3.1): write the target density
 $p$, integrate it to its CDF $P$ (marginal then conditional, in 2-D), and
 invert, $X = P^{-1}(U)$. If $U$ is uniform on $[0,1)^k$ then $X$ has density
 $p$, and stratified or low-discrepancy $U$ stay well spread after the warp
@@ -30,12 +30,11 @@ hemispheres are around $+z$. Everything is differentiable where the map is
     p = jaxmc.warps.hemisphere_cosine_pdf(w)      # cos(theta) / pi
     ```
 
-References: lecture §3.1 (inversion; examples 3.1.1 power, 3.1.2 exponential,
-3.1.3 disk); P. Shirley and K. Chiu, "A Low Distortion Map Between Disk and
-Square", JGT 1997 (concentric disk); M. Pharr, W. Jakob, G. Humphreys,
-*Physically Based Rendering*, §13.6 (hemisphere, cone, triangle and
-sphere-light sampling); T. Duff et al., "Building an Orthonormal Basis,
-Revisited", JCGT 2017.
+References: M. Pharr, W. Jakob, G. Humphreys, *Physically Based Rendering*, 3rd ed.,
+§13.3.1 (inversion; power and exponential examples), §13.6.2 (disk) and §13.6
+(hemisphere, cone, triangle and sphere-light sampling); P. Shirley and K. Chiu,
+"A Low Distortion Map Between Disk and Square", JGT 1997 (concentric disk);
+T. Duff et al., "Building an Orthonormal Basis, Revisited", JCGT 2017.
 """
 
 from ._warps._cone import (

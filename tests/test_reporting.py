@@ -1,5 +1,7 @@
 """Readable results: the compact notation, `repr` with numbers, `Combined.summary()`, the progress bar."""
 
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -48,6 +50,7 @@ NAN, INF = float("nan"), float("inf")
         (1.0, INF, "1 ± inf"),
         (INF, NAN, "inf ± nan"),
         (1e300, 1e-300, "1e+300 ± 1e-300"),
+        (1000000.5, 8.9e-10, "1000000.5 ± 8.9e-10"),  # every digit of the mean kept
     ],
 )
 def test_compact_notation(mean, stderr, text):
@@ -73,6 +76,47 @@ def test_str_and_repr_show_numbers():
     pair = hand_made([0.99771, 1.2345], [0.00423, 0.0123])
     assert str(pair) == "[0.9977(42) 1.234(12)]"
     assert repr(pair).startswith("Estimate(mean=[0.99771, 1.2345], stderr=[0.00423, 0.0123]")
+
+
+def test_str_says_when_an_error_bar_has_few_degrees_of_freedom():
+    # mean +- 2 stderr of 3 replicas covers 82%, not 95%: the reader is told.
+    assert str(hand_made(0.99771, 0.00423, dof=2.0)) == "0.9977(42) [dof 2]"
+    assert str(hand_made(0.99771, 0.00423, dof=30.0)) == "0.9977(42)"
+    est = jaxmc.integrate(jax.random.key(0), lambda x: jnp.cos(jnp.sum(x)), [0.0] * 3,
+                          [1.0] * 3, n=20_000, method="qmc")
+    assert np.isfinite(float(est.dof)) and float(est.dof) < 10
+    assert str(est).endswith(f" [dof {float(est.dof):.0f}]")
+
+
+def test_summary_shows_the_race_and_its_winner():
+    peak = lambda x: jnp.exp(-jnp.sum((x - 0.4) ** 2) / (2 * 0.05**2))  # noqa: E731
+    est = jaxmc.integrate(jax.random.key(0), peak, [0.0] * 4, [1.0] * 4, n=100_000)
+    text = est.summary()
+    assert str(est) in text and f"method: {est.method}" in text
+    winner = [line for line in text.splitlines() if line.endswith("<- won")]
+    assert len(winner) == 1 and winner[0].startswith(est.method)
+    for name in est.pilot.candidates:
+        assert any(line.startswith(name) for line in text.splitlines())
+    assert "diagnostics: nothing to report" in text
+    # Without a pilot: no race; with a tolerance: its verdict.
+    est = jaxmc.integrate(jax.random.key(0), peak, [0.0] * 4, [1.0] * 4, rtol=1e-2,
+                          method="plain")
+    text = est.summary()
+    assert "<- won" not in text and "tolerance: met" in text
+    with pytest.raises(ValueError, match="outside `jit`"):
+        jax.jit(lambda k: jaxmc.integrate(k, peak, [0.0] * 4, [1.0] * 4, n=4096,
+                                          method="plain").summary())(jax.random.key(0))
+
+
+@pytest.mark.skipif(sys.version_info < (3, 11), reason="exception notes need Python 3.11")
+def test_an_integrand_written_for_a_batch_hears_of_batched():
+    f = lambda x: jnp.exp(-x[:, 0] ** 2 - x[:, 1] ** 2)  # noqa: E731  (a batch, not a point)
+    with pytest.raises(IndexError) as error:
+        jaxmc.integrate(jax.random.key(0), f, [0.0, 0.0], [1.0, 1.0], n=4096, method="plain")
+    assert "batched=True" in "".join(getattr(error.value, "__notes__", []))
+    est = jaxmc.integrate(jax.random.key(0), f, [0.0, 0.0], [1.0, 1.0], n=4096, method="plain",
+                          batched=True)
+    assert abs(float(est.mean) - 0.557746) < 5 * float(est.stderr)
 
 
 def test_repr_of_jitted_and_traced_estimates():

@@ -2,6 +2,8 @@ r"""The record of `Auto`'s pilot: what each candidate measured, and which stages
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -52,3 +54,26 @@ class Pilot(eqx.Module):
         ]
         return (f"Pilot(choice={self.candidates[int(self.choice)]!r}, stages={ran}, "
                 f"evaluations={int(self.evaluations)}, {', '.join(figures)})")
+
+    def table(self) -> str:
+        """The race as a text table: per candidate its variance per evaluation (relative, and
+        the factor of its uncertainty, one standard deviation), its cost and whether it won;
+        then the stages that ran. Outside `jit`, unbatched."""
+        if not concrete(self) or jnp.ndim(self.choice) != 0:
+            raise ValueError("`summary()` needs concrete, unbatched values: call it outside "
+                             "`jit` and `vmap`.")
+        head = ("candidate", "variance/eval", "x/ (1 sd)", "cost", "")
+        rows = [
+            (name, f"{float(v):.3g}", f"{math.exp(float(s)):.3g}" if np.isfinite(s) else "-",
+             f"{float(c):.3g}", "<- won" if i == int(self.choice) else "")
+            for i, (name, v, s, c) in enumerate(zip(
+                self.candidates, np.asarray(self.variance), np.asarray(self.log_sd),
+                np.asarray(self.cost)))
+        ]
+        widths = [max(len(r[j]) for r in [head, *rows]) for j in range(len(head))]
+        lines = ["  ".join(c.ljust(w) if j == 0 else c.rjust(w)
+                           for j, (c, w) in enumerate(zip(r, widths))).rstrip()
+                 for r in [head, *rows]]
+        ran = [name for name, on in zip(STAGES, np.asarray(self.stages)) if on]
+        return "\n".join([*lines, f"stages run: {', '.join(ran)}; "
+                           f"{int(self.evaluations):,} evaluations"])

@@ -29,7 +29,13 @@ from .._checks import (
     check_key,
     is_concrete,
 )
-from .._diagnostics import variance_out_of_range, warn_if_unreliable
+from .._diagnostics import (
+    reliability_reasons,
+    trusted,
+    variance_out_of_range,
+    warn_if_unreliable,
+)
+from .._format import concrete
 from .._integrand import bind
 from .._methods._adaptive import Adaptive
 from .._methods._basic import QMC, Plain, Stratified
@@ -66,14 +72,40 @@ class IntegrationEstimate(Estimate):
       pytree. `integrate(..., method=est.plan)` streams at once, without a pilot or
       training.
     - `pilot`: for `"auto"`, the pilot's record (`jaxmc.methods.Pilot`), else `None`.
-    - `converged`: with a tolerance, whether the standard error met it (never where the
-      variance left its dtype's range, `stats.unreliable`); else `None`.
+    - `converged`: with a tolerance, whether the standard error met it and the diagnostics
+      trust it (`stats.unreliable` of the estimate is False: never where no value was
+      non-zero or the variance left its dtype's range); else `None`.
     """
 
     method: str = eqx.field(static=True)
     plan: AbstractMethod
     pilot: Pilot | None
     converged: jax.Array | None
+
+    def summary(self) -> str:
+        """What made this estimate, as text (outside `jit`): the estimate and its counts, the
+        method that streamed; for `"auto"` the pilot's race (each candidate's relative
+        variance per evaluation, its uncertainty and cost, the winner) and the stages that
+        ran; the tolerance's verdict; the diagnostics' reasons for distrust, if any."""
+        if not concrete(self):
+            raise ValueError("`summary()` needs concrete values: call it outside `jit`.")
+        lines = [f"estimate: {self}  (n = {int(np.max(self.n)):,} evaluations)"]
+        stream = f"method: {self.method}"
+        if self.pilot is not None:
+            stream += f", the winner of auto's pilot on {int(self.pilot.evaluations):,} of them"
+        lines.append(stream)
+        if self.pilot is not None:
+            lines.append(self.pilot.table())
+        dof = np.min(np.asarray(self.dof, float))
+        lines.append("error bar: " + ("Gaussian (many degrees of freedom)" if not np.isfinite(dof)
+                                      else f"Student's t, {dof:.0f} degrees of freedom")
+                     + (", an i.i.d. upper bound (a power-law tail)"
+                        if np.any(np.asarray(self.conservative)) else ""))
+        if self.converged is not None:
+            lines.append(f"tolerance: {'met' if bool(self.converged) else 'not met'}")
+        reasons = reliability_reasons(self)
+        lines.append("diagnostics: " + ("; ".join(reasons) if reasons else "nothing to report"))
+        return "\n".join(lines)
 
 
 def integrate(
@@ -173,11 +205,16 @@ def integrate(
     problem = Problem(f, lo, hi, batched, chunk or CHUNK, _blocks_mesh(mesh), tolerant,
                       progress, rtol, atol, chunk or SMALL_CHUNK, probe=n is None)
     est, plan, pilot = method.run(key, problem, budget)
-    converged = out_of_range = None
+    # (Values dropped on request, with nonfinite="drop", are not news.)
+    judged = Estimate(**estimate_fields(est))
+    if nonfinite == "drop":
+        judged = eqx.tree_at(lambda e: e.n_nonfinite, judged, jnp.zeros_like(est.n_nonfinite))
+    met = converged = None
     if tolerant:
-        # (A variance out of its dtype's range meets nothing, however small it reads.)
-        out_of_range = jnp.any(variance_out_of_range(est))
-        converged = problem.met(est) & ~out_of_range
+        # One verdict: a tolerance met by an error bar the diagnostics distrust (a variance
+        # out of its dtype's range, no non-zero value seen, ...) is not converged.
+        met = problem.met(est)
+        converged = met & trusted(judged)
     name = plan.name if is_concrete(getattr(plan, "choice", 0)) else "auto"
     est = IntegrationEstimate(**estimate_fields(est), method=name, plan=plan, pilot=pilot,
                               converged=converged)
@@ -186,14 +223,11 @@ def integrate(
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
     # (Out of range, the reliability warning below says why, and what to do.)
-    if tolerant and is_concrete(converged) and not bool(converged) and not bool(out_of_range):
+    if (tolerant and is_concrete(met) and not bool(met)
+            and not bool(jnp.any(variance_out_of_range(est)))):
         warnings.warn(unmet_tolerance(est, budget, rtol, atol, lo.dtype),
                       ReliabilityWarning, stacklevel=2)
-    # (Values dropped on request, with nonfinite="drop", are not news.)
-    fields = estimate_fields(est)
-    if nonfinite == "drop":
-        fields["n_nonfinite"] = jnp.zeros_like(est.n_nonfinite)
-    warn_if_unreliable(Estimate(**fields), "integrate")
+    warn_if_unreliable(judged, "integrate")
     return est
 
 

@@ -1,8 +1,8 @@
 r"""Multiple importance sampling: the multi-sample and one-sample models.
 
-Formulas as in the course assignment (`reference/variance-reduction-assignment.md`)
-and Veach's thesis, ch. 9 (E. Veach, *Robust Monte Carlo Methods for Light
-Transport Simulation*, Stanford 1997; Veach & Guibas, SIGGRAPH 1995).
+Formulas as in Veach's thesis, ch. 9 (E. Veach, *Robust Monte Carlo Methods for Light
+Transport Simulation*, Stanford 1997) and Veach & Guibas, "Optimally Combining Sampling
+Techniques for Monte Carlo Rendering" (SIGGRAPH 1995).
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def mis(
       w_k(X_{k,i})\,\frac{f(X_{k,i})}{p_k(X_{k,i})}.$$
 
     - `heuristic="balance"`: $w_k = n_k p_k / \sum_l n_l p_l$, so each term is
-      $f / \sum_l (n_l/n_k) p_l$. With equal counts this is the assignment's
+      $f / \sum_l (n_l/n_k) p_l$. With equal counts this is
       $w_k = p_k / \sum_l p_l$.
     - `heuristic="power"`: $w_k = (n_k p_k)^\beta / \sum_l (n_l p_l)^\beta$
       (β = `beta`, default 2; β = 1 is the balance heuristic).
@@ -205,7 +205,7 @@ def mis_one_sample(
     batched: bool = False,
     args: Any = None,
 ) -> Estimate:
-    r"""Multiple importance sampling, one-sample model (Veach, §9.2.4; the assignment).
+    r"""Multiple importance sampling, one-sample model (Veach, §9.2.4).
 
     Each of the $n$ samples first picks a technique $I$ with probability
     $c_I$ = `probs[I]`, then draws $X \sim p_I$, and scores
@@ -213,7 +213,7 @@ def mis_one_sample(
     $$\hat I_{\rm MIS,\,single} = \frac{w_I(X)\, f(X)}{c_I\, p_I(X)}.$$
 
     - `heuristic="balance"`: $w_k = c_k p_k / \sum_l c_l p_l$, so the score is
-      $f(X) / \sum_l c_l p_l(X)$ — with equal `probs` exactly the assignment's
+      $f(X) / \sum_l c_l p_l(X)$ — with equal `probs` exactly
       $f(X_I) / (c_I \sum_l p_l(X_I))$. This is the optimal weighting for the
       one-sample model (Veach, Theorem 9.4).
     - `heuristic="power"`: $w_k = (c_k p_k)^\beta / \sum_l (c_l p_l)^\beta$.

@@ -1,4 +1,4 @@
-r"""Stratified sampling over a grid of strata (lecture §4.2)."""
+r"""Stratified sampling over a grid of strata (Owen 2013, ch. 8; PBRT 3rd ed. §13.8.1)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,8 @@ def stratified(
     batched: bool = False,
     args: Any = None,
 ) -> Estimate:
-    r"""Stratified sampling over a regular grid of strata (lecture §4.2).
+    r"""Stratified sampling over a regular grid of strata (Owen, *Monte Carlo theory, methods
+    and examples*, ch. 8; PBRT 3rd ed. §13.8.1).
 
     The box $[lo, hi]$ is cut into $M = \prod_j \mathrm{counts}_j$ equal cells
     $\Omega_k$ of volume $v_k = V/M$, and `per_stratum` $= m$ uniform points are
@@ -75,8 +76,8 @@ def stratified(
     $$F_{st} = \sum_{k=1}^M v_k F_k,\qquad F_k = \frac1m \sum_{j=1}^m f(X_{k,j}),$$
 
     unbiased, with variance $V[F_{st}] = \sum_k v_k^2 \sigma_k^2 / m$, never larger
-    than the plain estimator's at the same $n = Mm$ (the lecture's decomposition
-    drops the between-strata term $\sum_k v_k(\mu_k - I)^2$).
+    than the plain estimator's at the same $n = Mm$ (by the variance decomposition of
+    Owen, ch. 8, it drops the between-strata term $\sum_k v_k(\mu_k - I)^2$).
 
     **Variance estimate.** With `per_stratum >= 2`, $\sigma_k^2$ is each
     stratum's sample variance (unbiased). With `per_stratum=1` a stratum's

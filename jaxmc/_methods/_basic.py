@@ -12,7 +12,8 @@ from ._method import AbstractMethod, Problem, Run
 
 class Plain(AbstractMethod):
     r"""Plain Monte Carlo: i.i.d. uniform points in the box, $\hat I = \frac{V}{n}\sum_i f(x_i)$
-    (Ramamoorthi's lecture notes, eq. 8), its variance $s^2/n$ (eq. 13)."""
+    and its variance $s^2/n$ (Owen, *Monte Carlo theory, methods and examples*, ch. 2;
+    PBRT 3rd ed. §13.2)."""
 
     name: ClassVar[str] = "plain"
 
@@ -22,8 +23,9 @@ class Plain(AbstractMethod):
 
 class Stratified(AbstractMethod):
     r"""Jittered strata: each block of points is one point in each cell of a grid over the box
-    (§4.2 of Ramamoorthi's notes); each block is one independent randomisation, and the
-    variance comes from the spread of the blocks' means."""
+    (Owen, *Monte Carlo theory, methods and examples*, ch. 8; PBRT 3rd ed. §13.8.1); each block
+    is one independent randomisation, and the variance comes from the spread of the
+    blocks' means."""
 
     name: ClassVar[str] = "stratified"
 

@@ -21,7 +21,8 @@ SEED_POINTS = 4096
 
 class Importance(AbstractMethod):
     r"""Importance sampling, $\hat I = \frac1n\sum_i f(x_i)/p(x_i)$ with $x_i \sim p$
-    (Ramamoorthi's lecture notes, eq. 10), streamed in blocks of i.i.d. draws.
+    (Owen, *Monte Carlo theory, methods and examples*, ch. 9; PBRT 3rd ed. §13.10), streamed in
+    blocks of i.i.d. draws.
 
     **Fields:**
 

@@ -106,7 +106,8 @@ def stratified(key: jax.Array, counts: tuple[int, ...], *, dtype=None) -> jax.Ar
     the point $x_j = (k_j + U_j)/c_j$ with $U \sim \mathcal U(0,1)^d$ independent
     per cell, so with $N = \prod_j c_j$ points the equal-weight estimator
     $\frac1N\sum f(x_k)$ is the stratified estimator with one sample per stratum
-    (lecture §4.2): unbiased, and never worse than plain Monte Carlo.
+    (Owen, *Monte Carlo theory, methods and examples*, ch. 8; PBRT 3rd ed. §13.8.1): unbiased,
+    and never worse than plain Monte Carlo.
 
     **Arguments:**
 

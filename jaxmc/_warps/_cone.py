@@ -36,8 +36,8 @@ def cone(u: ArrayLike, cos_max: ArrayLike) -> jax.Array:
     The cone's solid angle is $2\pi(1 - \cos\theta_{max})$, so
     $p(\omega) = 1/(2\pi(1 - \cos\theta_{max}))$, $p(\theta) = \sin\theta /
     (1 - \cos\theta_{max})$ on $[0, \theta_{max}]$, with CDF
-    $P(\theta) = (1 - \cos\theta)/(1 - \cos\theta_{max})$. Inverting (lecture
-    §3.1): $\cos\theta = 1 - u_1 (1 - \cos\theta_{max})$, $\phi = 2\pi u_2$.
+    $P(\theta) = (1 - \cos\theta)/(1 - \cos\theta_{max})$. Inverting (PBRT 3rd ed.
+    §13.6.4): $\cos\theta = 1 - u_1 (1 - \cos\theta_{max})$, $\phi = 2\pi u_2$.
     `cos_max = 0` is `hemisphere_uniform`, `cos_max = -1` is `sphere_uniform`.
     Differentiable in `cos_max`.
 
@@ -105,11 +105,12 @@ def sphere_solid_angle(
     Seen from `ref` at distance $d$ from the centre, a sphere of radius $r$
     fills the cone around $\hat d = (c - ref)/d$ with
     $\sin\theta_{max} = r/d$. Sampling that cone uniformly (`cone`, by
-    inversion, lecture §3.1) gives a solid-angle density
+    inversion, PBRT 3rd ed. §13.6.4) gives a solid-angle density
     $p(\omega) = 1/(2\pi(1 - \cos\theta_{max}))$ that is constant on the
-    light, which is what the solid-angle form of the lighting integral (§2.2.3)
-    wants; it is far better than area sampling (eq. 15) for small or distant
-    spheres. Every sampled ray hits the sphere. If `ref` is inside the sphere
+    light, which is what the solid-angle form of the lighting integral (the
+    reflection equation, PBRT 3rd ed. §5.6.1) wants; it is far better than area
+    sampling ($d\omega = \cos\theta\,dA/r^2$, PBRT 3rd ed. §5.5.3) for small or
+    distant spheres. Every sampled ray hits the sphere. If `ref` is inside the sphere
     the cone is the whole sphere of directions ($p = 1/4\pi$).
     $1 - \cos\theta_{max}$ is computed without cancellation, so tiny lights
     work in float32. Differentiable in `center`, `radius` and `ref`.

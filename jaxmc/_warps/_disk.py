@@ -1,4 +1,5 @@
-"""Uniform points on the unit disk: polar inversion and the concentric map (lecture §3.1.3)."""
+"""Uniform points on the unit disk: polar inversion (PBRT 3rd ed. §13.6.2) and the concentric
+map (Shirley & Chiu, "A Low Distortion Map Between Disk and Square", 1997)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ def _unit_disk_pdf(x: ArrayLike) -> jax.Array:
 
 
 def disk_polar(u: ArrayLike) -> jax.Array:
-    r"""Uniform point on the unit disk by polar inversion (lecture §3.1.3).
+    r"""Uniform point on the unit disk by polar inversion (PBRT 3rd ed. §13.6.2).
 
     The uniform density on the disk is $p(x) = 1/\pi$; in polar coordinates
     ($dA = r\,dr\,d\theta$) it is $p(r, \theta) = r/\pi$, with marginal
@@ -56,7 +57,7 @@ def disk_concentric(u: ArrayLike) -> jax.Array:
     half-width $s$ (area $4 s^2$) becomes the disk of radius $s$ (area
     $\pi s^2$) and each wedge is stretched uniformly in angle, so the area
     ratio is $\pi/4$ everywhere: the density is uniform, $1/\pi$, like
-    `disk_polar`'s (lecture §3.1.3), but the map distorts areas and strata
+    `disk_polar`'s (PBRT 3rd ed. §13.6.2), but the map distorts areas and strata
     much less. Continuous, with a continuous inverse.
 
     **Arguments:** `u` of shape `(..., 2)`. **Returns:** `(..., 2)` points.

@@ -19,7 +19,7 @@ def box(u: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> jax.Array:
 
     The density is constant, $p(x) = 1/V$ with $V = \prod_j (hi_j - lo_j)$, so
     the CDF of each coordinate is $(x_j - lo_j)/(hi_j - lo_j)$ and its inverse
-    is the affine map above (lecture §3.1). Points lie in the open box: one the
+    is the affine map above (PBRT 3rd ed. §13.3.1). Points lie in the open box: one the
     map rounds onto a face (or `u` = 0) is moved to the nearest float inside, so
     an integrand singular on a face stays finite.
 
@@ -56,11 +56,11 @@ def box_inverse(x: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------
-# power (lecture §3.1.1)
+# power (PBRT 3rd ed. §13.3.1)
 
 
 def power(u: ArrayLike, n: ArrayLike) -> jax.Array:
-    r"""Sample $p(x) = (n+1)\,x^n$ on $[0, 1]$ (lecture §3.1.1).
+    r"""Sample $p(x) = (n+1)\,x^n$ on $[0, 1]$ (PBRT 3rd ed. §13.3.1).
 
     Normalising $p(x) = c\,x^n$ gives $c = n + 1$; the CDF is
     $P(x) = x^{n+1}$, so inversion gives $X = U^{1/(n+1)}$. Used for Blinn-type
@@ -100,16 +100,15 @@ def power_inverse(x: ArrayLike, n: ArrayLike) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------
-# exponential (lecture §3.1.2)
+# exponential (PBRT 3rd ed. §13.3.1)
 
 
 def exponential(u: ArrayLike, a: ArrayLike) -> jax.Array:
-    r"""Sample $p(x) = a\,e^{-a x}$ on $[0, \infty)$ (lecture §3.1.2).
+    r"""Sample $p(x) = a\,e^{-a x}$ on $[0, \infty)$ (PBRT 3rd ed. §13.3.1).
 
     Normalising $c\,e^{-ax}$ gives $c = a$; the CDF is $P(x) = 1 - e^{-ax}$ and
-    solving $U = 1 - e^{-aX}$ gives $X = -\ln(1 - U)/a$. The lecture then
-    replaces $1 - U$ by $U'$ (also uniform), i.e. $X = -\ln U'/a$ (the
-    printed "$-U'/a$" drops the logarithm). We keep $1 - U$: it is finite at
+    solving $U = 1 - e^{-aX}$ gives $X = -\ln(1 - U)/a$. A common shortcut
+    replaces $1 - U$ by $U'$ (also uniform), i.e. $X = -\ln U'/a$. We keep $1 - U$: it is finite at
     $u = 0$ (for $u \in [0, 1)$) and keeps the map increasing, so stratified
     inputs stay ordered and `exponential_inverse` is the CDF itself.
 

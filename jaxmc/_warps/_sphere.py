@@ -55,7 +55,7 @@ def hemisphere_cosine(u: ArrayLike) -> jax.Array:
     $p(\omega) = \cos\theta/\pi$ (normalised: $\int_{H^2}\cos\theta\,d\omega =
     \pi$) gives $p(\theta) = 2\cos\theta\sin\theta$ with CDF
     $P(\theta) = \sin^2\theta$, so $\sin\theta = \sqrt{u_1}$ and $\phi = 2\pi
-    u_2$: exactly the radius of a uniform disk point (lecture §3.1.3). Hence
+    u_2$: exactly the radius of a uniform disk point (PBRT 3rd ed. §13.6.2). Hence
     Malley's method: sample the unit disk uniformly and project up,
     $z = \sqrt{1 - x^2 - y^2}$. We use `disk_concentric` for the disk, as PBRT
     does, for its low distortion.

@@ -232,7 +232,7 @@ class QuadLight(AbstractDirections):
 
     A uniform point $y$ on the quad ($p_A = 1/A$, $A = |e_u \times e_v|$) seen
     at distance $t = |y - ref|$ under $\cos\theta_l = n_l\cdot\omega$ has the
-    solid-angle density (lecture eq. 15)
+    solid-angle density (PBRT 3rd ed. §5.5.3)
 
     $$ p(\omega) = \frac{t^2}{A\,|\cos\theta_l|} $$
 

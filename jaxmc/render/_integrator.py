@@ -11,8 +11,8 @@ proposals of `jaxmc.render` at the shading point (`SphereLight`, `QuadLight`,
 and draws from their `warp`, so the pixel's 2-D point pattern drives them.
 
 - `"light"`: choose a light uniformly, sample the cone a sphere subtends
-  (solid angle) or a point on a quad by area (lecture eq. 15), shadow ray
-  against all geometry: $f L_e \cos\theta_i / p_L$;
+  (solid angle) or a point on a quad by area ($d\omega = \cos\theta\,dA/r^2$,
+  PBRT 3rd ed. §5.5.3), shadow ray against all geometry: $f L_e \cos\theta_i / p_L$;
 - `"brdf"`: sample the BRDF (glossy lobe or cosine), trace, and collect the
   emission hit: $f L_e \cos\theta_i / p_B$;
 - `"mis_balance"`, `"mis_power"`: one light and one BRDF sample per spp,

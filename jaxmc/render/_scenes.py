@@ -9,7 +9,8 @@ from ._geometry import Material, Planes, Quads, Spheres
 from ._scene import LIGHT_STRATEGIES, STRATEGIES, Scene
 
 
-# Veach's thesis ch. 9 as reconstructed for Nori; see reference/veach-mis-scene.md
+# A reconstruction of the scene of Veach's thesis (1997), fig. 9.4 (four glossy plates lit
+# by four spherical lights).
 VEACH_LIGHT_X = (-3.75, -1.25, 1.25, 3.75)
 VEACH_LIGHT_RADIUS = (0.03333, 0.1, 0.3, 0.9)
 VEACH_LIGHT_RADIANCE = (901.803, 100.0, 11.1111, 1.23457)
@@ -82,8 +83,9 @@ def veach_mis(*, fill_light: bool = False) -> Scene:
 
 def area_light(*, radiance: float = 6.0, size: float = 1.5, height: float = 1.5) -> Scene:
     """A diffuse floor (the plane y = 0, albedo 0.5) and a diffuse ball under one
-    square light facing down — the lecture's eq. 15 setting, where sampling the
-    hemisphere (uniformly or by cosine) competes with sampling the light's area.
+    square light facing down — the setting of dω = cos θ dA / r² (PBRT 3rd ed. §5.5.3),
+    where sampling the hemisphere (uniformly or by cosine) competes with sampling
+    the light's area.
 
     Shapes: `ball`, `light`, `floor`.
     """
