@@ -77,16 +77,18 @@ def progress_bar(enabled: bool, total: int, done: int = 0, desc: str = "integrat
             _close()
 
 
-def report(mean, stderr, n, *, total: int, last: bool, desc: str = "integrate") -> None:
+def report(mean, stderr, n, *, total: int, last: bool, desc: str = "integrate",
+           note: str = "") -> None:
     """The host side of the loop's `jax.debug.callback`: the streaming call has done `n` of
     its `total` evaluations and estimates `mean` with error `stderr`; `last` after the loop;
-    `desc` labels a bar opened here (under `jit`)."""
+    `desc` labels a bar opened here (under `jit`); `note` follows the estimate (a
+    tolerance run's forecast)."""
     with _Shown.lock:
         if _Shown.bar is None:
             if last:  # (a batch of `vmap`ped runs: the first one closed the bar)
                 return
             _Shown.bar = _open(total, 0, desc)  # under `jit`: a bar for the streaming part
-        text = compact_array(mean, stderr)
+        text = compact_array(mean, stderr) + (f" {note}" if note else "")
         _Shown.bar.set_postfix_str(
             text if len(text) <= _POSTFIX else text[: _POSTFIX - 1] + "…", refresh=False
         )

@@ -147,7 +147,9 @@ def integrate(
       `"stratified"`; or a plan from an earlier result, `est.plan`, which streams at once.
     - `max_n`: the budget when only tolerances are given (default $2^{30}$): a cap, not a
       size; the stream also stops, unmet, where its error bar reaches the dtype's rounding
-      floor.
+      floor. Outside `jit`, a run whose error bar, at the rate it has fallen so far, cannot
+      meet the tolerance within the budget warns as soon as that is clear (and `progress`
+      shows the forecast).
     - `chunk`: samples evaluated per loop step (default $2^{18}$, $2^{16}$ from a
       mixture): bounds the memory; results do not depend on it beyond float rounding.
     - `nonfinite`: `"raise"` (default) raises `FloatingPointError` when some $f/p$ was not

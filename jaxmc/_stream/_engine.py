@@ -49,6 +49,7 @@ at an 8th of the evaluations on the easy cases (16384).
 from __future__ import annotations
 
 import math
+import warnings
 from functools import partial
 
 import equinox as eqx
@@ -59,7 +60,7 @@ from jax.sharding import PartitionSpec
 
 from .._checks import is_concrete
 from .._compiled import per_integrand
-from .._diagnostics import bounded_variance, stderr_floor, variance_out_of_range
+from .._diagnostics import ReliabilityWarning, bounded_variance, stderr_floor, variance_out_of_range
 from .._integrand import evaluate
 from .._progress import report
 from .._stats import (
@@ -72,6 +73,7 @@ from .._stats import (
     merge_all,
 )
 from ._blocks import Context, context, step_moments, step_points, values
+from ._forecast import Forecast, forecast_note
 from ._sizes import MIN_BLOCKS_TO_STOP, QMC_PASSES_TO_STOP
 
 
@@ -245,11 +247,21 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
         no = np.asarray(False)
         t, checks = 0, (no, no)
 
+        # QMC's error may fall like n^-3/2 on a smooth integrand; independent blocks' like
+        # n^-1/2.
+        forecast = Forecast(sizes.budget, 1.5 if sizes.replicas > 1 else 0.5)
+
         def walk(t, carry, checks, per_step, steps):
             while t < steps and not bool(_stops(checks, sizes=sizes)):
                 carry = step(carry, t, per_step)
                 t += 1
                 checks = _check_compiled(jnp.int32(t), carry, checks, rtol, atol, sizes=sizes)
+                if sizes.replicas == 1 or t & (t - 1) == 0:  # (QMC: at whole nets)
+                    est = _estimate(carry, ctx.active, sizes=sizes)
+                    _forecast(forecast, est, rtol, atol)
+                    if progress:
+                        report(est.mean, est.stderr, est.n, total=total, last=False,
+                               note=forecast_note(forecast))
             return t, carry, checks
 
         if sizes.early_steps > 1:  # (as `stream`'s walks)
@@ -263,6 +275,14 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
     if progress:
         report(est.mean, est.stderr, est.n, total=total, last=True)
     return est
+
+
+def _forecast(forecast: Forecast, est, rtol, atol) -> None:
+    """Warn once, mid-run, where the forecast says the tolerance is out of the budget's reach."""
+    text = forecast.unreachable(est.n, est.mean, est.stderr, est.dof, rtol, atol)
+    if text is not None and not forecast.warned:
+        forecast.warned = True
+        warnings.warn(text, ReliabilityWarning, stacklevel=2)
 
 
 # (The frozen density may hold Python numbers, a VEGAS+ allocation's strata: static, as
