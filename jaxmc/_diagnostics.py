@@ -243,6 +243,10 @@ def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
 # Above this tail shape the values follow a power law (an unbounded integrand, or f/p with a
 # singular ratio): variance estimators from few replicas or pairs are skewed and too small.
 STRUCTURED_MAX_PARETO_K = 0.2
+# ...called on this many exceedances at least (n >= 456): k-hat's noise, sd ~ (1 + k)/sqrt(M),
+# carries a bounded tail (k < 0) past 0.2 by chance on fewer, and each such call swaps a
+# stratified error bar for an i.i.d. bound tens of times wider.
+STRUCTURED_MIN_TAIL = 64
 # A bound this many times the structured variance is flagged as conservative: the error bar
 # is then an upper bound, not a standard error (2-sigma coverage 1.00 in the coverage suite).
 CONSERVATIVE_RATIO = 4.0
@@ -250,9 +254,10 @@ CONSERVATIVE_RATIO = 4.0
 
 @jax.jit
 def power_law_tail(t: Tail) -> jax.Array:
-    """Whether the contributions have a power-law tail ($\\hat k$ > `STRUCTURED_MAX_PARETO_K`):
-    an unbounded integrand, where structured (replica, stratum) spreads understate the error."""
-    return pareto_k(t) > STRUCTURED_MAX_PARETO_K
+    """Whether the contributions have a power-law tail ($\\hat k$ > `STRUCTURED_MAX_PARETO_K`
+    on at least `STRUCTURED_MIN_TAIL` exceedances): an unbounded integrand, where structured
+    (replica, stratum) spreads understate the error."""
+    return (pareto_k(t) > STRUCTURED_MAX_PARETO_K) & (tail_size(t.count) >= STRUCTURED_MIN_TAIL)
 
 
 @jax.jit
@@ -292,6 +297,11 @@ _PRIOR_K = 10.0
 _GRID = 30 + int(np.sqrt(TAIL))
 
 
+def tail_size(count: jax.Array) -> jax.Array:
+    """The exceedances $M$ the Pareto fit uses among `count` contributions (as PSIS)."""
+    return jnp.floor(jnp.minimum(jnp.minimum(count / 5, 3 * jnp.sqrt(count)), TAIL))
+
+
 @jax.jit
 def pareto_k(t: Tail) -> jax.Array:
     r"""Generalised Pareto shape $\hat k$ of the upper tail of $|c_i|$ (per component).
@@ -310,7 +320,7 @@ def pareto_k(t: Tail) -> jax.Array:
     # The barrier keeps XLA from fusing the tail's `top_k` into the gathers below, which
     # on the CPU turned an O(n) pass into a full sort (1.5 s instead of 10 ms at n = 2^22).
     count, top = jax.lax.optimization_barrier((t.count, t.top))
-    m_tail = jnp.floor(jnp.minimum(jnp.minimum(count / 5, 3 * jnp.sqrt(count)), TAIL))
+    m_tail = tail_size(count)
     m_int = m_tail.astype(jnp.int32)
     idx = jnp.arange(TAIL + 1)
     threshold = jnp.take_along_axis(
