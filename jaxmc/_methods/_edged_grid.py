@@ -70,16 +70,16 @@ class EdgedGrid(eqx.Module):
     grid: Grid
     low: jax.Array
     high: jax.Array
-    # Per (axis, bin), flattened to `(d * N,)`: z where u enters the bin, z's step over it,
-    # log(N p |step|); and per axis the first bin measured from `hi` (`_tables`).
+    # Per (axis, bin), flattened to `(d * N,)`: z where u enters the bin and where it leaves
+    # it, log(N p); and per axis the first bin measured from `hi` (`_tables`).
     start: jax.Array
-    step: jax.Array
-    log_slope: jax.Array
+    end: jax.Array
+    log_scale: jax.Array
     split: jax.Array
 
     def __init__(self, grid: Grid, low, high):
         self.grid, self.low, self.high = grid, low, high
-        self.start, self.step, self.log_slope, self.split = _tables(grid, low, high)
+        self.start, self.end, self.log_scale, self.split = _tables(grid, low, high)
 
     @property
     def dim(self) -> int:
@@ -121,20 +121,23 @@ class EdgedGrid(eqx.Module):
         gather = lambda table: table.at[flat].get(mode="promise_in_bounds")  # noqa: E731
         lower = i < self.split  # the distance is to `lo` (else to `hi`, falling as u grows)
         power = jnp.where(lower, self.low, self.high)
-        z = jnp.maximum(gather(self.start) + gather(self.step) * (y - i),
-                        jnp.finfo(u.dtype).tiny)
+        # (The step is the difference of the two edges read here, exact: as `Grid`'s bins,
+        # these tile their axis, whatever order the compiler summed the edges in.)
+        start = gather(self.start)
+        step = gather(self.end) - start
+        z = jnp.maximum(start + step * (y - i), jnp.finfo(u.dtype).tiny)
         log_z = jnp.log(z)
         distance = jnp.exp(power * log_z)
         lo, hi = (jnp.reshape(b, (grid.dim,)) for b in (grid.lo, grid.hi))
         x = to_box(jnp.where(lower, distance, 1 - distance), lo, hi)
         # (`sum_last`: XLA on the CPU sums a short trailing axis 2x slower.)
-        log_q = -sum_last(gather(self.log_slope) + (power - 1) * log_z)
+        log_q = -sum_last(gather(self.log_scale) + jnp.log(jnp.abs(step)) + (power - 1) * log_z)
         return x, log_q - log_volume(grid.lo, grid.hi)
 
 
 def _tables(grid: Grid, low, high):
-    r"""`EdgedGrid`'s tables: per (axis, bin) $z$ where $u$ enters the bin, its step over the
-    bin, and $\log(N\,p\,|\Delta z|)$, flattened to `(d * N,)`; and per axis the first bin
+    r"""`EdgedGrid`'s tables: per (axis, bin) $z$ where $u$ enters the bin and where it
+    leaves it, and $\log(N\,p)$, flattened to `(d * N,)`; and per axis the first bin
     whose middle lies on the upper half, measured from `hi` (with `high`).
 
     Where a face has a power, the first `EDGE_FIT[1]` bins from it are even in $z$ (their
@@ -142,7 +145,7 @@ def _tables(grid: Grid, low, high):
     off the law (on $x^{-1/2}$ in 2-D it held twice the others' mass, and a corner of two
     such bins carried values 6x the mean on 1 point in 65536, which QMC's replicas missed
     together, at 4-7 standard errors on 6% of keys)."""
-    _, edges = grid._unit_edges()
+    edges = grid._unit_edges()
     k = EDGE_FIT[1]
     even = jnp.arange(k + 1, dtype=edges.dtype) / k
 
@@ -156,9 +159,8 @@ def _tables(grid: Grid, low, high):
     lower = edges[:, :-1] + edges[:, 1:] < 1  # the bin's middle on the lower half
     power = jnp.where(lower, low[:, None], high[:, None])
     start = jnp.where(lower, from_lo[:, :-1], from_hi[:, :-1])
-    step = jnp.where(lower, from_lo[:, 1:], from_hi[:, 1:]) - start
-    log_slope = jnp.log(grid.bins * power * jnp.abs(step))
-    flat = tuple(jnp.reshape(t, (-1,)) for t in (start, step, log_slope))
+    end = jnp.where(lower, from_lo[:, 1:], from_hi[:, 1:])
+    flat = tuple(jnp.reshape(t, (-1,)) for t in (start, end, jnp.log(grid.bins * power)))
     return flat + (jnp.sum(lower, axis=1).astype(jnp.int32),)
 
 
@@ -177,7 +179,7 @@ def edge_powers(grid: Grid) -> tuple[jax.Array, jax.Array]:
     19 standard errors. Through the grid alone that mass is missed as well, under error bars
     as wide as it. In float64 (spacing 2.2e-16 at 1) and at a face at 0 (any float type) it
     is 1.5e-8 of that integral or less."""
-    _, edges = grid._unit_edges()
+    edges = grid._unit_edges()
     nb = grid.bins
     if nb < MIN_EDGED_BINS:  # too few bins to read a law from
         ones = jnp.ones((grid.dim,), edges.dtype)

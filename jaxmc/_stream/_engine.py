@@ -279,6 +279,8 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
 
 def _forecast(forecast: Forecast, est, rtol, atol) -> None:
     """Warn once, mid-run, where the forecast says the tolerance is out of the budget's reach."""
+    if not all(is_concrete(a) for a in (est.mean, est.stderr, rtol, atol)):
+        return  # (traced by a transformation run eagerly, `jax.jvp`: no values to read)
     text = forecast.unreachable(est.n, est.mean, est.stderr, est.dof, rtol, atol)
     if text is not None and not forecast.warned:
         forecast.warned = True

@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 
+from .._diagnostics import rounding_floor
+
 
 # The fit needs checks spanning at least this factor in evaluations, and this many of them.
 MIN_SPAN = 16.0
@@ -41,9 +43,12 @@ class Forecast:
     def unreachable(self, n, mean, stderr, dof, rtol, atol) -> str | None:
         """After a check at `n` evaluations: a warning's text when even the optimistic
         forecast needs more than the budget (the worst component), else None."""
+        mean = np.asarray(mean)
         target = np.maximum(np.asarray(atol, float), np.asarray(rtol, float) * np.abs(mean))
         excess = np.max(np.asarray(stderr, float) / np.where(target > 0, target, np.nan))
-        if not np.isfinite(excess) or excess <= 1 or int(n) <= 0:
+        # (Below the rounding floor the stream stops there, and says so itself.)
+        floored = np.any(target < rounding_floor(mean.dtype) * np.abs(mean))
+        if not np.isfinite(excess) or excess <= 1 or int(n) <= 0 or floored:
             self.checks.clear()  # (met, or nothing to forecast: start afresh)
             self.needed = None
             return None
