@@ -6,6 +6,6 @@ results, the timer `time_call`) and `problems` (the integrands, each written onc
 for `jax.numpy` and `numpy`).
 """
 
-SUITES = ("throughput", "points", "proposals", "convergence", "adaptive", "auto", "plans", "render", "coverage")
+SUITES = ("throughput", "points", "proposals", "convergence", "adaptive", "auto", "plans", "render", "coverage", "coverage32")
 # Suites that have no quick setting (their point is many seeds): `--quick` skips them.
-FULL_ONLY = ("plans", "coverage")
+FULL_ONLY = ("plans", "coverage", "coverage32")
