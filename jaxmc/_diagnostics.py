@@ -67,9 +67,7 @@ MIN_TAIL = 20  # fewer exceedances give a k-hat too noisy to act on (sd ~0.25 at
 MIN_ESS = 10  # below: a handful of values carry the mean and its variance
 MIN_NONZERO = 10  # below: a peak was hit a few times or not at all
 MAX_PARETO_K = 0.7  # above: the variance estimate cannot be trusted...
-# ...when the tail carries the mean: an importance density with ess/n ~ 0.9 and k-hat > 0.7
-# (a singular ratio in a sliver of the box) covered at the nominal rate in the coverage suite.
-HEAVY_TAIL_ESS_SHARE = 0.1
+HEAVY_TAIL_ESS_SHARE = 0.1  # ...when the tail carries the mean (ess below this share of n)
 MIN_Q = 1e-3  # below: adaptive rounds disagree beyond their error bars
 # Relative rounding error allowed for the arithmetic behind a mean: a few ulps for the
 # integrand's own evaluation (its float32 points and library functions) and the summation.
@@ -121,15 +119,11 @@ def largest(a: jax.Array, axis: int) -> jax.Array:
     with the largest maxima: they hold the largest entries, since each of those
     maxima is at least the `(TAIL + 1)`-th largest entry. Selecting among the
     group maxima and then among the $16 \cdot 129$ entries of the chosen groups
-    costs about half a selection among all $2^{14}$ in float64 (on a CPU,
-    measured: 0.4 ms against 0.8 ms per $5 \cdot 2^{14}$ entries, about what
-    the Sobol' points and a cheap integrand cost); float32's partial selection
-    gains nothing from it.
+    costs about half a selection among all $2^{14}$ in float64.
 
     Wider than float32, the entries are ranked by $\log(a/\max a)$ in float32 and
     the chosen ones gathered at full precision and sorted: XLA's CPU `top_k` is
-    a partial selection in float32 but a full sort in float64 (2.5 ms against
-    0.05 ms for 2^14 values, 6x the cost of a QMC block). The logarithm keeps
+    a partial selection in float32 but a full sort in float64. The logarithm keeps
     the whole float64 range apart; two entries can swap ranks only when they
     differ by less than about $6\cdot10^{-8}\,|\log(a/\max a)|$ relative, where
     the Pareto fit learns nothing from the difference.
@@ -243,12 +237,10 @@ def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
 # Above this tail shape the values follow a power law (an unbounded integrand, or f/p with a
 # singular ratio): variance estimators from few replicas or pairs are skewed and too small.
 STRUCTURED_MAX_PARETO_K = 0.2
-# ...called on this many exceedances at least (n >= 456): k-hat's noise, sd ~ (1 + k)/sqrt(M),
-# carries a bounded tail (k < 0) past 0.2 by chance on fewer, and each such call swaps a
-# stratified error bar for an i.i.d. bound tens of times wider.
+# ...called on this many exceedances at least (n >= 456): on fewer, k-hat's noise (sd about
+# (1 + k)/sqrt(M)) carries bounded tails (k < 0) past 0.2, swapping in a far wider bound.
 STRUCTURED_MIN_TAIL = 64
-# A bound this many times the structured variance is flagged as conservative: the error bar
-# is then an upper bound, not a standard error (2-sigma coverage 1.00 in the coverage suite).
+# A bound this many times the structured variance is flagged: an upper bound, not a stderr.
 CONSERVATIVE_RATIO = 4.0
 
 
@@ -268,15 +260,13 @@ def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> tuple[jax
     Randomised QMC's variance comes from the $R - 1$ degrees of freedom of its
     replicas, a stratified one from pairs within each stratum. For an unbounded
     integrand ($\hat k > 0.2$, e.g. $x^{-1/3}$ or $x^{-1/2}$) the few values
-    that carry the singularity make these estimates so skewed that they missed
-    the truth by 5–8 sigma and covered 50–80% at 2 sigma. There the i.i.d.
+    that carry the singularity make these estimates skewed and too small. There the i.i.d.
     variance of all contributions, $(\overline{c^2} - \bar c^2)/N$, is reported
     when larger: proportional stratification never has a larger variance, and a
     scrambled $(0, m, s)$-net at most a constant times it (Owen 1997), so it
     bounds the error honestly (conservatively). `conservative` says the bound is
     at least `CONSERVATIVE_RATIO` times the structured estimate: the error bar is
-    then an upper bound, usually far above the actual error (a stratified
-    $x^{-1/3}$ covers 100% at 2 sigma), and `unreliable` says so.
+    then an upper bound, usually far above the actual error, and `unreliable` says so.
     """
     count = jnp.maximum(t.count, 1)
     iid = jnp.maximum(t.sq_sum / count - mean**2, 0.0) / count
