@@ -41,8 +41,8 @@ class Adaptive(AbstractMethod):
     Three stages of VEGAS+ rounds (`jaxmc.fit.VegasPlus`) of one size, about budget/40
     points (a power of two from 256 to $2^{14}$), on a grid of 64 to 256 bins per axis:
 
-    1. **Training**: up to ten rounds on at most a quarter of the budget adapt the grid
-       from uniform; their estimates are discarded.
+    1. **Training**: up to ten rounds on at most a quarter of the budget adapt a uniform
+       grid; their estimates are discarded.
     2. **Refining**: the rest of a fixed budget (with a tolerance, up to 32 rounds) goes
        to rounds that each estimate the integral and go on refining the grid and the
        allocation, as vegas adapts through the iterations it reports. Their estimates are
@@ -60,8 +60,8 @@ class Adaptive(AbstractMethod):
     **Fields:**
 
     - `state`: a trained VEGAS+ state (`jaxmc.fit.VegasPlus`'s), or `None` to train one.
-      Given a state (an earlier result's `plan`), the method skips training and refines
-      from it.
+      Given a state (an earlier result's `plan`), the method skips training and goes on
+      refining that state.
     - `finer`: refine on rounds 4x the training's on a grid subdivided to 4x its bins, as
       vegas's many increments do near a singularity (a fixed budget of at least six such
       rounds; may be traced). `Auto` sets it where the integrand's values have a power-law

@@ -102,10 +102,9 @@ class Grid(AbstractUnitMap):
         r"""Per (axis, bin), flattened to `(d * N,)`: left edge, width, and $\log(N\,\text{width})$.
 
         Each width is the difference of its bin's edges, not the softmax they were summed
-        from: the two differ by a unit of the edges' last place or so, which in float32 is
-        a few tenths of a percent of a narrow bin on a resonance, and bins whose extents
-        and densities disagree overlap or leave gaps, a bias as large (5e-4 of a 4-D
-        Breit-Wigner's integral). The edges are sums, without a product the compiler could
+        from: the two differ by about a unit of the edges' last place, a sizeable share of
+        a narrow bin in float32, and bins whose extents and densities disagree overlap or
+        leave gaps, a bias. The edges are sums, without a product the compiler could
         contract into the differences: those are exact, and the bins tile the interval.
         (A bin narrower than its edges' last place holds no interval: density infinite,
         f/p zero there, as the integral over it.)"""
