@@ -6,6 +6,7 @@ results, the timer `time_call`) and `problems` (the integrands, each written onc
 for `jax.numpy` and `numpy`).
 """
 
-SUITES = ("throughput", "points", "proposals", "convergence", "adaptive", "auto", "plans", "render", "coverage", "coverage32")
+SUITES = ("throughput", "points", "proposals", "convergence", "adaptive", "auto", "infinite",
+          "plans", "render", "coverage", "coverage32")
 # Suites that have no quick setting (their point is many seeds): `--quick` skips them.
 FULL_ONLY = ("plans", "coverage", "coverage32")

@@ -81,13 +81,18 @@ def check_choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
     return value
 
 
-def check_bounds(lo: Any, hi: Any, finite_volume: bool = False) -> tuple[jax.Array, jax.Array]:
+def check_bounds(
+    lo: Any, hi: Any, finite_volume: bool = False, infinite: bool = False
+) -> tuple[jax.Array, jax.Array]:
     """Bounds of a box: both scalars or both of shape `(d,)`, with `lo < hi`.
 
     Returns floating arrays of the default float dtype (or of the bounds' own
     floating dtype). With `finite_volume` (for estimators that divide by the
     volume, rather than summing its logarithm), the volume and the uniform
-    density must be finite and non-zero in that dtype.
+    density must be finite and non-zero in that dtype. With `infinite` (for
+    `integrate` and `expectation`, which map infinite axes onto finite
+    intervals), `lo` may hold -inf and `hi` +inf; the volume is then
+    checked on the finite axes only.
     """
     host = _host_reals(lo), _host_reals(hi)
     if host[0] is not None and host[1] is not None:
@@ -117,12 +122,18 @@ def check_bounds(lo: Any, hi: Any, finite_volume: bool = False) -> tuple[jax.Arr
     if lo_arr.shape == (0,):
         raise ValueError("`lo` and `hi` must have at least one dimension, got shape (0,).")
     if lo_np is not None and hi_np is not None:
-        if not (np.all(np.isfinite(lo_np)) and np.all(np.isfinite(hi_np))):
-            raise ValueError(f"`lo` and `hi` must be finite, got lo={lo_np}, hi={hi_np}.")
+        if np.any(np.isnan(lo_np)) or np.any(np.isnan(hi_np)):
+            raise ValueError(f"`lo` and `hi` must not be NaN, got lo={lo_np}, hi={hi_np}.")
+        if not infinite and not (np.all(np.isfinite(lo_np)) and np.all(np.isfinite(hi_np))):
+            raise ValueError(
+                f"`lo` and `hi` must be finite here, got lo={lo_np}, hi={hi_np}; "
+                "jaxmc.integrate and jaxmc.expectation accept infinite limits."
+            )
         if not np.all(lo_np < hi_np):
             raise ValueError(f"`lo` must be < `hi` in every dimension, got lo={lo_np}, hi={hi_np}.")
         if finite_volume:
-            _check_volume(lo_np, hi_np, dtype)
+            finite = np.isfinite(lo_np) & np.isfinite(hi_np)
+            _check_volume(lo_np[finite], hi_np[finite], dtype)
     return lo_arr, hi_arr
 
 

@@ -17,7 +17,8 @@ Every result of `integrate` carries its *plan*, `est.plan`: the method that stre
 what it trained (a grid, a fitted mixture). `integrate(..., method=est.plan)` streams with
 it at once, without a pilot or training: a family of integrals (`vmap` over `args`, a
 pipeline under `jit`, another process after `equinox.tree_serialise_leaves`) pays for the
-choice once. Under `jit`, `Auto`'s plan is a `OneOf` of the candidates, its choice traced.
+choice once. Under `jit`, `Auto`'s plan is a `OneOf` of the candidates, its choice traced;
+with infinite limits, a plan is a `Mapped`: the method, and the maps of the infinite axes.
 """
 
 from ._auto._auto import Auto as Auto
@@ -26,6 +27,7 @@ from ._methods._adaptive import Adaptive as Adaptive
 from ._methods._basic import QMC as QMC, Plain as Plain, Stratified as Stratified
 from ._methods._grid_qmc import GridQMC as GridQMC
 from ._methods._importance import Importance as Importance
+from ._methods._mapped import Mapped as Mapped
 from ._methods._method import AbstractMethod as AbstractMethod
 from ._methods._one_of import OneOf as OneOf
 
@@ -36,6 +38,7 @@ __all__ = [
     "Auto",
     "GridQMC",
     "Importance",
+    "Mapped",
     "OneOf",
     "Pilot",
     "Plain",

@@ -153,7 +153,7 @@ BAD_INPUTS = [
     ({"lo": [1.0, 0.0]}, ValueError, r"`lo` must be < `hi`"),
     ({"hi": [1.0, 0.0]}, ValueError, r"`lo` must be < `hi`"),
     ({"lo": [0.0, 0.0, 0.0]}, ValueError, r"`lo` and `hi` must have the same shape"),
-    ({"lo": [0.0, float("nan")]}, ValueError, r"`lo` and `hi` must be finite"),
+    ({"lo": [0.0, float("nan")]}, ValueError, r"`lo` and `hi` must not be NaN"),
     ({"lo": ["a", "b"]}, TypeError, r"`lo` must be a real number or a sequence of them"),
     ({"hi": [1.0 + 1j, 1.0]}, TypeError, r"`hi` must be a real number or a sequence of them"),
     ({"n": 0}, ValueError, r"`(n|n_per_iteration|per_stratum)` must be >= [12]"),

@@ -7,6 +7,7 @@ aliases of default objects. This module checks the arguments, runs the method on
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -41,9 +42,11 @@ from .._methods._adaptive import Adaptive
 from .._methods._basic import QMC, Plain, Stratified
 from .._methods._grid_qmc import GridQMC
 from .._methods._importance import Importance
+from .._methods._mapped import Mapped
 from .._methods._method import AbstractMethod, Problem
 from .._stats import Estimate, ReliabilityWarning, estimate_fields
 from .._stream._tolerance import check_tolerance, unmet_tolerance
+from .._unbounded import axis_kinds, fit_maps, map_pilot_size, probe_count
 
 
 # The strings `method` accepts, aliases of default method objects.
@@ -126,7 +129,8 @@ def integrate(
     batched: bool = False,
     args: Any = None,
 ) -> IntegrationEstimate:
-    r"""Integrate `f` over the box $[lo, hi]$ to a tolerance or a budget, streaming.
+    r"""Integrate `f` over the box $[lo, hi]$ (limits may be infinite) to a tolerance or a
+    budget, streaming.
 
     Evaluates blocks of samples until
     $\mathrm{stderr} \le \max(\mathrm{atol}, \mathrm{rtol}\cdot|\mathrm{mean}|)$
@@ -138,7 +142,12 @@ def integrate(
 
     - `key`: a PRNG key.
     - `f`: the integrand, written for one point (or for a batch with `batched=True`).
-    - `lo`, `hi`: the box (scalars or shape `(d,)`).
+    - `lo`, `hi`: the box (scalars or shape `(d,)`). Limits may be infinite (`-jnp.inf` in
+      `lo`, `jnp.inf` in `hi`, constants under `jit`): each infinite axis is then mapped
+      onto a finite interval by a map fitted to `f` (its centre and scale to where $|f|$
+      has its mass, its power tail to how fast $|f|$ decays, so that $f$ times the
+      Jacobian stays bounded; see `jaxmc.methods.Mapped`), on a few thousand evaluations
+      that count in `n`, and `method` streams on the finite box.
     - `rtol`, `atol`: tolerances on the standard error; give either or both, and/or `n`.
     - `n`: the evaluation budget (a static int); with a tolerance too, a cap.
     - `method`: a method of `jaxmc.methods`, or its name: `"auto"` (default: a pilot races
@@ -180,8 +189,17 @@ def integrate(
     """
     key = check_key(key)
     f = bind(check_callable(f), args)
-    lo, hi = check_bounds(lo, hi, finite_volume=True)
+    kinds = axis_kinds(lo, hi)
+    lo, hi = check_bounds(lo, hi, finite_volume=True, infinite=True)
     method = _method(method)
+    if isinstance(method, Mapped) and (kinds is None or method.maps.kinds != kinds):
+        raise ValueError(
+            "`method` is a plan made for infinite limits on other axes or sides: it streams "
+            "only where `lo` and `hi` are infinite where they were.")
+    if kinds is not None and method.trained and not isinstance(method, Mapped):
+        raise ValueError(
+            "`method` is a plan made on a finite box, and `lo`/`hi` hold infinite limits; "
+            "pass the method's name (e.g. 'auto') to fit a map of the infinite axes.")
     nonfinite = check_choice(nonfinite, "nonfinite", ("raise", "drop"))
     rtol = check_tolerance(rtol, "rtol", lo.dtype)
     atol = check_tolerance(atol, "atol", lo.dtype)
@@ -206,7 +224,20 @@ def integrate(
                   for tol in (rtol, atol))
     problem = Problem(f, lo, hi, batched, chunk or CHUNK, _blocks_mesh(mesh), tolerant,
                       progress, rtol, atol, chunk or SMALL_CHUNK, probe=n is None)
-    est, plan, pilot = method.run(key, problem, budget)
+    probes = 0
+    if kinds is not None and not isinstance(method, Mapped):
+        key, key_maps = jax.random.split(key)
+        pilot_size = map_pilot_size(problem.pilot_budget(budget))
+        probes = probe_count(kinds, pilot_size)
+        if 4 * probes > budget:
+            raise ValueError(
+                f"with infinite limits `integrate` spends {probes} evaluations fitting a map of "
+                f"the infinite axes; give a budget of at least {4 * probes}, got {budget}.")
+        maps = fit_maps(key_maps, f, lo, hi, kinds=kinds, pilot=pilot_size, batched=batched)
+        method = Mapped(method, jax.lax.stop_gradient(maps))
+    est, plan, pilot = method.run(key, problem, budget - probes)
+    if probes:
+        est = dataclasses.replace(est, n=est.n + probes)
     # (Values dropped on request, with nonfinite="drop", are not news.)
     judged = Estimate(**estimate_fields(est))
     if nonfinite == "drop":
@@ -217,7 +248,8 @@ def integrate(
         # out of its dtype's range, no non-zero value seen, ...) is not converged.
         met = problem.met(est)
         converged = met & trusted(judged)
-    name = plan.name if is_concrete(getattr(plan, "choice", 0)) else "auto"
+    streamed = plan.method if isinstance(plan, Mapped) else plan
+    name = streamed.name if is_concrete(getattr(streamed, "choice", 0)) else "auto"
     est = IntegrationEstimate(**estimate_fields(est), method=name, plan=plan, pilot=pilot,
                               converged=converged)
     if tolerant:
