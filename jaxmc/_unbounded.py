@@ -52,10 +52,8 @@ FINITE, TWO_SIDED, ABOVE_LO, BELOW_HI = 0, 1, 2, 3  # an axis's kind
 # The heaviest map tail (density ~ |x|^-1.5): bounds any f decaying as |x|^-1.5 or faster.
 MIN_TAIL = 0.5
 # The lightest, for f decaying as |x|^-2 or faster: the rational map x = c + s t/(1 - t^2).
-# Plain sampling through the map alone would prefer lighter tails (on a Gaussian, relative
-# variance per axis 0.30 at k = 1, 0.05 at 8), but they squeeze f's decay into the last
-# bins of the VEGAS grid that adaptive methods train on top, where f/p then has a tail the
-# diagnostics read as a power law (their i.i.d. bound replaces the error bar).
+# Lighter tails squeeze f's decay into the last bins of the VEGAS grid that adaptive
+# methods train on top, where f/p then has a tail the diagnostics read as a power law.
 MAX_TAIL = 1.0
 # Tail probes at 2^8 ... 2^20 scales from the bulk: far enough for the asymptotic slope.
 PROBE_OCTAVES = tuple(range(8, 21))
@@ -213,9 +211,8 @@ def map_expectation(key, g, log_density, lo, hi, *, kinds, n, minimum, batched):
 def _fit_maps(key, f, lo, hi, *, kinds, pilot, batched, log_values):
     dtype = lo.dtype
     shape = lo.shape
-    kind = jnp.reshape(jnp.asarray(kinds), shape)
-    two, above, below = kind == TWO_SIDED, kind == ABOVE_LO, kind == BELOW_HI
-    unbounded = kind != FINITE
+    kind = np.reshape(np.asarray(kinds), shape)
+    finite = kind == FINITE
 
     def log_abs(x):
         y = evaluate(f, x, batched)
@@ -225,8 +222,9 @@ def _fit_maps(key, f, lo, hi, *, kinds, pilot, batched, log_values):
         return jnp.log(jnp.sum(y, axis=1))
 
     ones = jnp.ones(shape, dtype)
-    maps = AxisMaps(kinds, jnp.where(above, lo, jnp.where(below, hi, 0.0)).astype(dtype), ones,
-                    ones)
+    # (Two-sided axes start centred at 0, half-lines at their finite end.)
+    anchor = jnp.where(kind == ABOVE_LO, lo, jnp.where(kind == BELOW_HI, hi, 0.0))
+    maps = AxisMaps(kinds, anchor.astype(dtype), ones, ones)
     keys = jax.random.split(key, PILOT_ROUNDS)
     quartiles = None
     for round_key in keys:
@@ -241,16 +239,17 @@ def _fit_maps(key, f, lo, hi, *, kinds, pilot, batched, log_values):
         found = _weighted_quantiles(jnp.reshape(x, (pilot, -1)), w, (0.25, 0.5, 0.75))
         found = jnp.reshape(found, (3,) + shape)
         quartiles = found if quartiles is None else jnp.where(seen, found, quartiles)
-        maps = _matched(maps, quartiles, maps.tail, two, above, below, seen)
+        maps = _matched(maps, quartiles, maps.tail, seen)
 
-    base = jnp.where(unbounded, quartiles[1], jnp.clip(quartiles[1], lo, hi))
+    base = jnp.where(finite, jnp.clip(quartiles[1], lo, hi), quartiles[1])
     tail = _tails(log_abs, base, maps.scale, kinds, dtype)
-    return _matched(maps, quartiles, tail, two, above, below, jnp.all(jnp.isfinite(quartiles)))
+    return _matched(maps, quartiles, tail, jnp.all(jnp.isfinite(quartiles)))
 
 
-def _matched(maps, quartiles, tail, two, above, below, ok):
+def _matched(maps, quartiles, tail, ok):
     """`maps` with tail `tail`, and its centre and scale set so that its quartiles (two-sided)
     or its median (half-lines) are `quartiles`' (where `ok` and the result is sound)."""
+    two, above, _, _ = maps._masks(maps.anchor.shape)
     q25, q50, q75 = quartiles
     spread = jnp.where(two, 0.5 * (q75 - q25), jnp.where(above, q50 - maps.anchor, maps.anchor - q50))
     scale = spread / unit_quantile(tail, two)
@@ -306,6 +305,6 @@ def _tails(log_abs, base, scale, kinds, dtype):
     mine = owners[:, None] == np.arange(d)[None, :]
     along = jnp.min(jnp.where(mine, decay[:, None], jnp.inf), axis=0)
     diagonal = jnp.min(jnp.where(owners == -1, decay, jnp.inf))
-    tail = jnp.minimum(along - 1.0, diagonal / int(unbounded.sum()) - 1.0)
-    tail = jnp.clip(jnp.where(jnp.isnan(tail), MIN_TAIL, tail), MIN_TAIL, MAX_TAIL)
+    tail = jnp.clip(jnp.minimum(along - 1.0, diagonal / int(unbounded.sum()) - 1.0),
+                    MIN_TAIL, MAX_TAIL)
     return jnp.reshape(jnp.where(unbounded, tail, 1.0), shape).astype(dtype)
