@@ -19,42 +19,76 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 
 
 # A program with the integrand it evaluates takes ~150-300 memory mappings on a CPU (one
 # per kernel and section); a few integrands' worth of programs keeps far below the limit.
 MAX_PROGRAMS = 64
+# The stream's programs that do not evaluate the integrand (its points, its moments, its
+# estimate) serve every integrand of a shape: a cache of their own, so that a session of
+# many integrands does not evict them, and bounded, so that one of many shapes (sizes of
+# `n`, dimensions, methods) does not accumulate them.
+MAX_SHAPE_PROGRAMS = 64
 
 _programs: collections.OrderedDict[Hashable, Callable] = collections.OrderedDict()
+_shape_programs: collections.OrderedDict[Hashable, Callable] = collections.OrderedDict()
 
 
 def per_integrand(fn: Callable) -> Callable:
     """`fn` compiled as `equinox.filter_jit` compiles it (its array arguments traced, the
     rest static), one program per static part, the `MAX_PROGRAMS` used last kept."""
+    return _bounded(fn, _programs, lambda: MAX_PROGRAMS)
 
+
+def per_shape(fn: Callable) -> Callable:
+    """`per_integrand` for programs that do not evaluate an integrand, in a cache of their
+    own: the `MAX_SHAPE_PROGRAMS` used last kept."""
+    return _bounded(fn, _shape_programs, lambda: MAX_SHAPE_PROGRAMS)
+
+
+def _bounded(fn: Callable, programs: collections.OrderedDict, size: Callable[[], int]):
     @functools.wraps(fn)
     def compiled(*args: Any, **kwargs: Any) -> Any:
         dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
         leaves, treedef = jax.tree.flatten(static)
         key = (fn, treedef, tuple(leaves))
         try:
-            program = _programs.pop(key, None)
+            program = programs.pop(key, None)
         except TypeError:  # an unhashable static argument: compiled for this call alone
             return _compile(fn, static)(dynamic)
         if program is None:
             program = _compile(fn, static)
-        _programs[key] = program  # (the most recent last)
-        while len(_programs) > MAX_PROGRAMS:
-            _programs.popitem(last=False)
+        programs[key] = program  # (the most recent last)
+        while len(programs) > size():
+            programs.popitem(last=False)
         return program(dynamic)
 
     return compiled
 
 
 def _compile(fn: Callable, static: Any) -> Callable:
+    """`fn` with its static part bound, as one `jax.jit` program. As `equinox.filter_jit`'s,
+    its outputs that are not arrays (Python numbers among them) come back as they are, not
+    as arrays: they are kept from the trace, one per signature of the traced arguments."""
+    outputs: dict[Hashable, Any] = {}
+
     def run(dynamic):
         args, kwargs = eqx.combine(dynamic, static)
-        return fn(*args, **kwargs)
+        arrays, rest = eqx.partition(fn(*args, **kwargs), eqx.is_array)
+        outputs[_signature(dynamic)] = rest
+        return arrays
 
     run.__name__ = run.__qualname__ = fn.__name__  # (what JAX's logs call the program)
-    return jax.jit(run)
+    program = jax.jit(run)
+
+    def call(dynamic):
+        arrays = program(dynamic)
+        return eqx.combine(arrays, outputs[_signature(dynamic)])
+
+    return call
+
+
+def _signature(dynamic) -> Hashable:
+    leaves, treedef = jax.tree.flatten(dynamic)
+    return treedef, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)

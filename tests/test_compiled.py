@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import pytest
 
 import jaxmc
+from benchmarks._harness import compiled_programs
 from jaxmc import _compiled
 
 from .helpers import box
@@ -41,3 +42,20 @@ def test_an_integrand_no_longer_used_is_released(monkeypatch, n):
                                               hi, n=n))
     gc.collect()
     assert released() is None
+
+
+@pytest.mark.parametrize("method", ["auto", "plain", "stratified"])
+def test_another_budget_compiles_no_program(method):
+    # The stream's programs read the budget as an array, and the pilot's sizes from it in
+    # powers of two: a session that integrates at many budgets does not compile (and hold)
+    # a set of programs per budget. (A budget past a power of two may size a larger pilot;
+    # below a chunk of 2^18 evaluations, steps are as many blocks as the budget holds.)
+    lo, hi = box(2)
+    f = _peak(0.37)
+    n = 2**19
+    first = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=n, method=method)
+    with compiled_programs() as compiled:
+        again = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=n + 3 * 2**14 + 7,
+                                method=method)
+    assert compiled == [], f"{len(compiled)} programs compiled"
+    assert again.n > first.n  # (the larger budget was spent, not the first one's)

@@ -158,11 +158,12 @@ class _Look(eqx.Module):
     go_on: jax.Array  # whether the grid's stage is worth running
 
 
-@partial(jax.jit, static_argnames=("growth", "growth_after", "price", "z", "costs"))
-def _look(y, bins, *, growth, growth_after, price, z, costs):
-    """QMC's pilot nets measured (QMC projected to the stream's nets after this stage and
-    after the grid's), and whether the grid's stage is worth running."""
-    both = nets_figures(y, bins, (growth, growth_after), z)
+@partial(jax.jit, static_argnames=("z", "costs"))
+def _look(y, bins, growths, price, *, z, costs):
+    """QMC's pilot nets measured (QMC projected `growths`-fold, to the stream's nets after
+    this stage and after the grid's), and whether the grid's stage is worth running (its
+    training costing `price` of what is left after it)."""
+    both = nets_figures(y, bins, growths, z)
     nets, after = (eqx.tree_at(lambda n: n.qmc, both, jax.tree.map(lambda a: a[k], both.qmc))
                    for k in (0, 1))
     go_on = grid_can_win(nets, np.asarray(costs, y.dtype), price, z)
@@ -191,11 +192,13 @@ class _MixtureStage(eqx.Module):
     draws: Any
 
 
-@partial(jax.jit, static_argnames=("costs", "stages", "search_n", "rests"))
-def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, *, costs, stages, search_n, rests):
+@partial(jax.jit, static_argnames="costs")
+def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, stages, search_n, rests, *, costs):
     """The candidates' figures, the winner and the pilot's record, from what ran: `(Pilot,
     the evaluations left for the stream: `rests`' after the last stage that ran)`. `grid`,
-    `mixture`: the stages' results (`None` where they did not run eagerly)."""
+    `mixture`: the stages' results (`None` where they did not run eagerly). The sizes
+    (`stages`' evaluations, the search's, `rests`) are arrays: one program serves every
+    budget."""
     dtype = look.nets.plain.value.dtype
     figures = [look.nets.qmc]
     if grid is not None:
@@ -212,7 +215,7 @@ def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, *, costs, stages, 
     winner = choose(figures, costs, (jnp.arange(len(CANDIDATES)) == 0) & look.nets.blind)
     ran = jnp.stack([jnp.asarray(True), look.go_on, jnp.asarray(grid_on),
                      jnp.asarray(mixture_on)])
-    evaluations = jnp.sum(jnp.where(ran, np.asarray(stages), 0))
+    evaluations = jnp.sum(jnp.where(ran, stages, 0))
     if grid is not None and grid.modes is None:  # (the search needs f's gradients)
         evaluations -= jnp.where(grid_on, search_n, 0)
     pilot = Pilot(CANDIDATES, figures.value, figures.log_sd, figures.value * costs, winner,
@@ -237,17 +240,20 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
     z, costs = auto.confidence, auto.costs
     stream_key, qmc_key, train_key, grid_key, mixture_key = _split(key)
     log2_early = s.early.bit_length() - 1
-    after = dict(growth_after=s.growth(s.per_replica, s.rests[2]), z=z, costs=costs)
+    dtype = np.dtype(lo.dtype)
+    after_grid = s.growth(s.per_replica, s.rests[2])
 
     # 1. The early look; 2. the rest of the nets.
     early = net_values(qmc_key, lo, hi, f, batched, 0, 1, log2_early)
-    first = _look(*early, growth=s.growth(s.early, s.rests[0]), price=s.rests[0] / s.rests[2],
-                  **dict(after, growth_after=s.growth(s.early, s.rests[2])))
+    first = _look(*early, np.asarray([s.growth(s.early, s.rests[0]),
+                                      s.growth(s.early, s.rests[2])], dtype),
+                  np.asarray(s.rests[0] / s.rests[2], dtype), z=z, costs=costs)
 
     def whole_nets():
         rest = net_values(qmc_key, lo, hi, f, batched, 1, 3, log2_early)
-        return _look(*_joined(early, rest), growth=s.growth(s.per_replica, s.rests[1]),
-                     price=s.rests[1] / s.rests[2], **after)
+        return _look(*_joined(early, rest), np.asarray([s.growth(s.per_replica, s.rests[1]),
+                                                        after_grid], dtype),
+                     np.asarray(s.rests[1] / s.rests[2], dtype), z=z, costs=costs)
 
     look = latest(first.go_on, stage(first.go_on, whole_nets), first)
     grid_on = first.go_on & look.go_on if look is not first else False
@@ -258,7 +264,7 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
         grid = training.state.grid
         figure = adaptive_figure(training.parts, training.samples, z, round_size=s.round_size)
         y = grid_qmc_values(grid_key, grid, f, batched, s.per_replica.bit_length() - 1)
-        through = grid_qmc_figure(y, growth=s.growth(s.per_replica, s.rests[2]), z=z)
+        through = grid_qmc_figure(y, np.asarray(after_grid, dtype), z=z)
         if not s.mixture_n:
             return _GridStage(training.state, training.samples, figure, through, None,
                               jnp.full((), jnp.inf, lo.dtype), None, jnp.asarray(False))
@@ -282,8 +288,9 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
 
         mixture = stage(mixture_on, mixture_stage)
 
-    pilot, rest = _verdict(look, grid_on, grid, mixture_on, mixture, costs=costs,
-                           stages=s.stages, search_n=s.search_n, rests=s.rests)
+    pilot, rest = _verdict(look, grid_on, grid, mixture_on, mixture,
+                           np.asarray(s.stages, np.int32), np.int32(s.search_n),
+                           np.asarray(s.rests, np.int32), costs=costs)
 
     # The winner streams what its stage left (QMC: one program for every stage's rest).
     done = int(np.sum(s.stages))

@@ -52,8 +52,8 @@ def grid_qmc_values(key, grid, f, batched, log2_size):
     return mapped_net_values(key, edged(grid), f, batched, log2_size)
 
 
-@partial(jax.jit, static_argnames=("growth", "z"))
-def grid_qmc_figure(y, *, growth, z) -> Figure:
+@partial(jax.jit, static_argnames="z")
+def grid_qmc_figure(y, growth, *, z) -> Figure:
     """QMC's figure through the grid, from its nets' values `y` `(R, m, ...)` (as QMC's own,
     `qmc_figure`, projected `growth`-fold): no candidate where the values saw nothing or
     have fewer effective points than `MIN_ESS_SHARE` of their number (a loose fit)."""

@@ -118,7 +118,7 @@ def _replica_figures(y, growths):
     doublings = jnp.arange(len(sizes), dtype=by_size.dtype) - (len(sizes) - 1) / 2
     rate = -jnp.sum(doublings * by_size) / jnp.sum(doublings**2)
     rate = jnp.clip(jnp.where(jnp.isfinite(rate), rate, 0.0), 0.0, MAX_QMC_RATE)
-    return by_size[-1] * math.log(2) - rate * np.log(np.asarray(growths, float))
+    return by_size[-1] * math.log(2) - rate * jnp.log(jnp.asarray(growths, by_size.dtype))
 
 
 def qmc_figure(y, growths) -> Figure:

@@ -34,13 +34,16 @@ def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
 
 class Context(eqx.Module):
     """What every block of a stream reads: its key, the frozen density (a proposal, a map,
-    or a VEGAS+ grid and allocation), the box; for QMC its replicas' scrambles, and for a
-    budget given when it runs, its replicas, their blocks each and the blocks in all."""
+    or a VEGAS+ grid and allocation), the box, the evaluations it may make (`limit`: an
+    array, so that the programs reading it serve every budget); for QMC its replicas'
+    scrambles, and for a budget given when it runs, its replicas, their blocks each and the
+    blocks in all."""
 
     key: jax.Array
     frozen: object
     lo: jax.Array
     hi: jax.Array
+    limit: jax.Array
     scrambles: object = None
     active: jax.Array | None = None
     per_replica: jax.Array | None = None
@@ -48,10 +51,12 @@ class Context(eqx.Module):
 
 
 def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
-    """The stream's `Context` (for `sizes.dynamic` QMC, `budget` evaluations in nets that
-    `min_replicas`, default `sizes.min_replicas`, fit in; both may be traced)."""
+    """The stream's `Context`: `budget` evaluations (`sizes.budget` where it is None), for
+    `sizes.dynamic` QMC in nets that `min_replicas`, default `sizes.min_replicas`, fit in;
+    both may be traced."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
     scrambles = active = per_replica = nblocks = None
+    limit = jnp.asarray(sizes.budget if budget is None else budget, jnp.int32)
     if sizes.method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(jax.random.split(key, sizes.replicas))
     if sizes.dynamic:
@@ -62,7 +67,8 @@ def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
         net = jnp.left_shift(1, 31 - jax.lax.clz(budget // fewest))
         active, per_replica = budget // net, net // sizes.block
         nblocks = active * per_replica
-    return Context(key, frozen, lo, hi, scrambles, active, per_replica, nblocks)
+        limit = nblocks * sizes.block
+    return Context(key, frozen, lo, hi, limit, scrambles, active, per_replica, nblocks)
 
 
 def replica_of(ctx: Context, b, *, sizes):
@@ -78,9 +84,7 @@ def blocks_of_step(ctx: Context, t, device, *, sizes, per_step, devices):
     per_device = -(-per_step // devices)
     slot = device * per_device + jnp.arange(per_device, dtype=jnp.int32)
     blocks = t * per_step + slot
-    inside = (slot < per_step) & (blocks < sizes.blocks)
-    if ctx.nblocks is not None:
-        inside = inside & (blocks < ctx.nblocks)
+    inside = (slot < per_step) & (blocks < -(-ctx.limit // sizes.block))
     return blocks, inside
 
 
@@ -169,8 +173,7 @@ def _block_moments(ctx: Context, b, inside, fx, aux, *, sizes):
                 jnp.where(inside, jnp.sum(bad, dtype=jnp.int32), 0), None)
     y, bad = ratio(fx, aux)
     index = b * sizes.block + jnp.arange(sizes.block)
-    limit = sizes.budget if ctx.nblocks is None else ctx.nblocks * sizes.block
-    valid = (index < limit) & inside
+    valid = (index < ctx.limit) & inside
     m = block_moments(y, valid, with_tail=False)  # the step's tail comes from all its blocks
     if method not in ("plain", "importance"):
         # The block is one randomisation: one observation, its mean.

@@ -38,12 +38,7 @@ With a tolerance the first loop step's blocks are walked in up to
 a tolerance that a few blocks meet stops there, not after a whole chunk, and
 the steps after it are whole chunks again (on an accelerator, small steps
 would leave it idle). Block means (stratified, VEGAS+ rounds) meet a
-tolerance from `MIN_BLOCKS_TO_STOP` of them on. Coverage measured with 60
-keys on 6 integrands (a 4-D camel, a 3-D ball, an 8-D half-space, a 2-D
-discontinuity, an 8-D Gaussian, an annulus) at `rtol` 1e-2 and 1e-3 with QMC:
-2-sigma 0.87-0.98, 5 of 720 runs beyond 3 sigma (Student's t with 7 degrees
-of freedom: 14 expected), as with the first check at nets of 2^14 (8 of 720),
-at an 8th of the evaluations on the easy cases (16384).
+tolerance from `MIN_BLOCKS_TO_STOP` of them on.
 """
 
 from __future__ import annotations
@@ -59,7 +54,7 @@ import numpy as np
 from jax.sharding import PartitionSpec
 
 from .._checks import is_concrete
-from .._compiled import per_integrand
+from .._compiled import per_integrand, per_shape
 from .._diagnostics import ReliabilityWarning, bounded_variance, stderr_floor, variance_out_of_range
 from .._integrand import evaluate
 from .._progress import report
@@ -222,18 +217,22 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
     from Python, the points (`step_points`), the integrand's values (`values`, the only
     program compiled for each integrand) and their moments (`step_moments`), so that a new
     integrand compiles a small program where `stream` compiles the whole loop."""
-    ctx = _context(key, frozen, lo, hi, budget, min_replicas, sizes=sizes)
+    # (The programs below read the budget from `ctx`, not from their static sizes.)
+    layout = sizes.per_block()
+    budget, min_replicas = (None if a is None else jnp.asarray(a, jnp.int32)
+                            for a in (budget if sizes.dynamic else sizes.budget, min_replicas))
+    ctx = _context(key, frozen, lo, hi, budget, min_replicas, sizes=layout)
     total = None if tolerant else sizes.budget
     carry = None  # (zeros shaped as the first step's moments: tracing for them costs more)
 
     def step(carry, t, per_step):
-        x, points = _points(ctx, jnp.int32(t), sizes=sizes, per_step=per_step)
-        m = _moments(ctx, values(x, f=f, batched=batched), points, sizes=sizes)
+        x, points = _points(ctx, jnp.int32(t), sizes=layout, per_step=per_step)
+        m = _moments(ctx, values(x, f=f, batched=batched), points, sizes=layout)
         if carry is None:
             carry = _zeros_like(m)
         carry = _accumulate_compiled(carry, *m)
         if progress:
-            est = _estimate(carry, ctx.active, sizes=sizes)
+            est = _estimate(carry, ctx.active, sizes=layout)
             report(est.mean, est.stderr, est.n, total=total, last=False)
         return carry
 
@@ -255,9 +254,9 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
             while t < steps and not bool(_stops(checks, sizes=sizes)):
                 carry = step(carry, t, per_step)
                 t += 1
-                checks = _check_compiled(jnp.int32(t), carry, checks, rtol, atol, sizes=sizes)
+                checks = _check_compiled(jnp.int32(t), carry, checks, rtol, atol, sizes=layout)
                 if sizes.replicas == 1 or t & (t - 1) == 0:  # (QMC: at whole nets)
-                    est = _estimate(carry, ctx.active, sizes=sizes)
+                    est = _estimate(carry, ctx.active, sizes=layout)
                     _forecast(forecast, est, rtol, atol)
                     if progress:
                         report(est.mean, est.stderr, est.n, total=total, last=False,
@@ -271,7 +270,7 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
         _, carry, _ = walk(t, carry, checks, sizes.per_step, sizes.steps)
     if carry is None:  # (no step ran)
         carry = _initial(ctx, sizes=sizes, f=f, batched=batched)
-    est = _estimate(carry, ctx.active, sizes=sizes)
+    est = _estimate(carry, ctx.active, sizes=layout)
     if progress:
         report(est.mean, est.stderr, est.n, total=total, last=True)
     return est
@@ -289,22 +288,22 @@ def _forecast(forecast: Forecast, est, rtol, atol) -> None:
 
 # (The frozen density may hold Python numbers, a VEGAS+ allocation's strata: static, as
 # `filter_jit` holds them. None of these programs evaluates the integrand.)
-_context = eqx.filter_jit(context)
+_context = per_shape(context)
 _accumulate_compiled = jax.jit(_accumulate)
-_check_compiled = eqx.filter_jit(_checked)
+_check_compiled = per_shape(_checked)
 
 
-@eqx.filter_jit
+@per_shape
 def _points(ctx, t, *, sizes, per_step):
     return step_points(ctx, t, 0, sizes=sizes, per_step=per_step, devices=1)
 
 
-@eqx.filter_jit
+@per_shape
 def _moments(ctx, fx, points, *, sizes):
     return step_moments(ctx, fx, points, sizes=sizes)
 
 
-@eqx.filter_jit
+@per_shape
 def _estimate(carry, active, *, sizes):
     return stream_estimate(*carry, sizes.replicas, active)
 

@@ -4,6 +4,7 @@ a tolerance run's probe."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -70,6 +71,14 @@ class Sizes(eqx.Module):
     # the most it may be, `replicas` the most replicas, and `min_replicas` sizes the nets.
     dynamic: bool = eqx.field(static=True, default=False)
     min_replicas: int = eqx.field(static=True, default=QMC_MIN_REPLICAS)
+
+    def per_block(self) -> Sizes:
+        """These sizes without the budget's (`budget`, `blocks`, `steps`, `early_steps`):
+        what a step's programs read, the budget coming from the stream's `Context` as an
+        array. Programs compiled for them serve every budget of the same block layout, so
+        a session that integrates at many budgets does not compile (and hold) one set of
+        programs per budget."""
+        return dataclasses.replace(self, budget=0, blocks=0, steps=0, early_steps=0)
 
 
 def final_net(budget: int, min_replicas: int = QMC_MIN_REPLICAS) -> int:
