@@ -28,12 +28,26 @@ of $|c_i|$ (a few ulps of the integrand's evaluation and of the summation).
 from __future__ import annotations
 
 import warnings
-from typing import Any, NamedTuple
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ._tail import (
+    TAIL,
+    Tail,
+    empty_tail,
+    gather_tails,
+    largest,
+    merge_tails,
+    pareto_k,
+    pareto_k_on,
+    tail_of,
+    tail_size,
+    tail_sums,
+)
 
 
 __all__ = [
@@ -62,8 +76,6 @@ __all__ = [
     "warn_if_unreliable",
 ]
 
-TAIL = 128  # largest |c_i| kept for the Pareto fit (plus one: the threshold)
-MIN_TAIL = 20  # fewer exceedances give a k-hat too noisy to act on (sd ~0.25 at 20)
 MIN_ESS = 10  # below: a handful of values carry the mean and its variance
 MIN_NONZERO = 10  # below: a peak was hit a few times or not at all
 MAX_PARETO_K = 0.7  # above: the variance estimate cannot be trusted...
@@ -91,137 +103,6 @@ def rounding_floor(dtype) -> float:
     return ROUNDING_ULPS * float(jnp.finfo(dtype).eps)
 
 
-class Tail(NamedTuple):
-    """Mergeable statistics of contributions $c_i$, per component of the value.
-
-    `count` (scalar float) counts the contributions; `abs_sum` $\\sum|c_i|$,
-    `sq_sum` $\\sum c_i^2$ and `nonzero` (float) have the value's shape; `top`
-    holds the `TAIL + 1` largest $|c_i|$ in decreasing order along its last
-    axis (zeros while fewer were seen).
-    """
-
-    count: jax.Array
-    abs_sum: jax.Array
-    sq_sum: jax.Array
-    nonzero: jax.Array
-    top: jax.Array
-
-
-# Groups of this many entries in which `largest` looks for the largest ones first.
-_GROUP = 16
-
-
-def largest(a: jax.Array, axis: int) -> jax.Array:
-    r"""The `TAIL + 1` largest entries of `a >= 0` along `axis`, moved last, decreasing (zero padded).
-
-    Where there are many entries (a stream's block of $2^{14}$), the search
-    narrows first to the `TAIL + 1` groups of `_GROUP` consecutive entries
-    with the largest maxima: they hold the largest entries, since each of those
-    maxima is at least the `(TAIL + 1)`-th largest entry. Selecting among the
-    group maxima and then among the $16 \cdot 129$ entries of the chosen groups
-    costs about half a selection among all $2^{14}$ in float64.
-
-    Wider than float32, the entries are ranked by $\log(a/\max a)$ in float32 and
-    the chosen ones gathered at full precision and sorted: XLA's CPU `top_k` is
-    a partial selection in float32 but a full sort in float64. The logarithm keeps
-    the whole float64 range apart; two entries can swap ranks only when they
-    differ by less than about $6\cdot10^{-8}\,|\log(a/\max a)|$ relative, where
-    the Pareto fit learns nothing from the difference.
-    """
-    a = jnp.moveaxis(a, axis, -1)
-    keep = TAIL + 1
-    short = keep - a.shape[-1]
-    if short > 0:
-        a = jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (short,), a.dtype)], axis=-1)
-    if a.shape[-1] >= 4 * keep * _GROUP:
-        spare = -a.shape[-1] % _GROUP  # zeros rank last, as the padding above
-        a = jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (spare,), a.dtype)], axis=-1)
-        groups = jnp.reshape(a, a.shape[:-1] + (-1, _GROUP))
-        chosen = _top_indices(jnp.max(groups, axis=-1), keep)
-        a = jnp.reshape(jnp.take_along_axis(groups, chosen[..., None], axis=-2),
-                        a.shape[:-1] + (keep * _GROUP,))
-    top = jnp.take_along_axis(a, _top_indices(a, keep), axis=-1)
-    return -jnp.sort(-top, axis=-1)
-
-
-def _top_indices(a: jax.Array, k: int) -> jax.Array:
-    """Indices of the `k` largest entries of `a >= 0` along the last axis (ranked in float32)."""
-    if jnp.finfo(a.dtype).bits <= 32:
-        return jax.lax.top_k(a, k)[1]
-    scale = jnp.max(a, axis=-1, keepdims=True)
-    ranks = jnp.log(a / jnp.where(scale > 0, scale, 1)).astype(jnp.float32)
-    return jax.lax.top_k(ranks, k)[1]
-
-
-@jax.jit
-def tail_of(c: jax.Array, valid: jax.Array | None = None) -> Tail:
-    """The `Tail` of contributions `c` `(n, ...)` (rows where `valid`)."""
-    c = jnp.asarray(c)
-    if valid is not None:
-        mask = jnp.reshape(valid, valid.shape + (1,) * (c.ndim - 1))
-        c = jnp.where(mask, c, 0)
-        count = jnp.sum(valid).astype(c.dtype)
-    else:
-        count = jnp.asarray(c.shape[0], c.dtype)
-    a = jnp.abs(c)
-    return jax.lax.optimization_barrier(Tail(
-        count=count,
-        abs_sum=jnp.sum(a, axis=0),
-        sq_sum=jnp.sum(a * a, axis=0),
-        nonzero=jnp.sum(a > 0, axis=0).astype(c.dtype),
-        top=largest(a, 0),
-    ))
-
-
-@jax.jit
-def tail_sums(c: jax.Array) -> Tail:
-    """The `Tail` of contributions `c` `(n, ...)` without their largest values (zeros there):
-    its sums only, for a loop that needs the largest values of a few rounds alone (their
-    search is half the time of a VEGAS+ round of 2048 points on a CPU)."""
-    a = jnp.abs(jnp.asarray(c))
-    return Tail(
-        count=jnp.asarray(a.shape[0], a.dtype),
-        abs_sum=jnp.sum(a, axis=0),
-        sq_sum=jnp.sum(a * a, axis=0),
-        nonzero=jnp.sum(a > 0, axis=0).astype(a.dtype),
-        top=jnp.zeros(a.shape[1:] + (TAIL + 1,), a.dtype),
-    )
-
-
-def empty_tail(shape: tuple[int, ...], dtype) -> Tail:
-    zero = jnp.zeros(shape, dtype)
-    return Tail(jnp.zeros((), dtype), zero, zero, zero, jnp.zeros(shape + (TAIL + 1,), dtype))
-
-
-@jax.jit
-def merge_tails(a: Tail, b: Tail) -> Tail:
-    """Exact merge: sums add, and the largest values of the union are kept."""
-    return Tail(
-        a.count + b.count,
-        a.abs_sum + b.abs_sum,
-        a.sq_sum + b.sq_sum,
-        a.nonzero + b.nonzero,
-        largest(jnp.concatenate([a.top, b.top], axis=-1), -1),
-    )
-
-
-def gather_tails(t: Tail, axes: tuple[str, ...]) -> Tail:
-    """Merge per-device tails across mesh `axes` with collectives."""
-    # Every device's values placed in its own row and summed: a psum, unlike all_gather,
-    # gives a value that is the same on every device (as shard_map's scan carry must be).
-    devices = jax.lax.axis_size(axes)
-    rows = jnp.zeros((devices,) + t.top.shape, t.top.dtype).at[jax.lax.axis_index(axes)].set(t.top)
-    rows = jax.lax.psum(rows, axes)
-    top = jnp.concatenate([rows[j] for j in range(devices)], axis=-1)
-    return Tail(
-        jax.lax.psum(t.count, axes),
-        jax.lax.psum(t.abs_sum, axes),
-        jax.lax.psum(t.sq_sum, axes),
-        jax.lax.psum(t.nonzero, axes),
-        largest(top, -1),
-    )
-
-
 def stderr_floor(t: Tail) -> jax.Array:
     r"""The smallest standard error contributions `t` can claim:
     $\mathrm{rounding\_floor}\cdot\frac1N\sum|c_i|$ (per component)."""
@@ -246,10 +127,22 @@ CONSERVATIVE_RATIO = 4.0
 
 @jax.jit
 def power_law_tail(t: Tail) -> jax.Array:
-    """Whether the contributions have a power-law tail ($\\hat k$ > `STRUCTURED_MAX_PARETO_K`
-    on at least `STRUCTURED_MIN_TAIL` exceedances): an unbounded integrand, where structured
-    (replica, stratum) spreads understate the error."""
-    return (pareto_k(t) > STRUCTURED_MAX_PARETO_K) & (tail_size(t.count) >= STRUCTURED_MIN_TAIL)
+    """Whether the contributions have a power-law tail: an unbounded integrand, where
+    structured (replica, stratum) spreads understate the error.
+
+    Called where $\\hat k$ > `STRUCTURED_MAX_PARETO_K` on at least `STRUCTURED_MIN_TAIL`
+    exceedances, unless the largest quarter of them reads bounded ($\\hat k < 0$ on its
+    own). A power law is the same at every threshold (the generalised Pareto family is
+    closed under raising it: the exceedances over a higher threshold have the same $k$),
+    while values with a finite maximum, f/q through a density that tames a peak among them,
+    bend towards it: at moderate thresholds a bounded but skewed tail (a product of
+    bounded ratios, near log-normal) reads like a power law, and only its top shows the
+    bound. The prior of the fit, which pulls $\\hat k$ towards 1/2 by ten observations,
+    keeps a true power law's top quarter from reading below 0 by noise alone."""
+    size = tail_size(t.count)
+    top_k = pareto_k_on(jax.lax.optimization_barrier(t.top), jnp.floor(size / 4))
+    return ((pareto_k(t) > STRUCTURED_MAX_PARETO_K) & (size >= STRUCTURED_MIN_TAIL)
+            & ~(top_k < 0))
 
 
 @jax.jit
@@ -279,70 +172,6 @@ def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> tuple[jax
 def effective_sample_size(t: Tail) -> jax.Array:
     r"""$(\sum|c_i|)^2 / \sum c_i^2$ (0 when every contribution is zero)."""
     return jnp.where(t.sq_sum > 0, t.abs_sum**2 / jnp.where(t.sq_sum > 0, t.sq_sum, 1), 0.0)
-
-
-# Zhang and Stephens's profile grid and prior, as in PSIS.
-_PRIOR_BS = 3.0
-_PRIOR_K = 10.0
-_GRID = 30 + int(np.sqrt(TAIL))
-
-
-def tail_size(count: jax.Array) -> jax.Array:
-    """The exceedances $M$ the Pareto fit uses among `count` contributions (as PSIS)."""
-    return jnp.floor(jnp.minimum(jnp.minimum(count / 5, 3 * jnp.sqrt(count)), TAIL))
-
-
-@jax.jit
-def pareto_k(t: Tail) -> jax.Array:
-    r"""Generalised Pareto shape $\hat k$ of the upper tail of $|c_i|$ (per component).
-
-    With $M$ exceedances $x_{(1)} \le \dots \le x_{(M)}$ of the largest values
-    over the $(M+1)$-th, Zhang and Stephens's estimate is a posterior mean over
-    a grid of $\theta_j = 1/x_{(M)} + (1 - \sqrt{m/(j - 1/2)})/(3 x_{(q)})$,
-    $q = \lfloor M/4 + 1/2\rfloor$, $j = 1..m$, $m = 30 + \lfloor\sqrt M\rfloor$,
-    each weighted by its profile likelihood $M(\log(-\theta_j/k_j) - k_j - 1)$
-    with $k_j = \frac1M \sum_i \log(1 - \theta_j x_{(i)})$; then $\hat k =
-    \frac1M\sum_i\log(1 - \bar\theta x_{(i)})$ at the posterior mean
-    $\bar\theta$, shrunk towards 1/2 by a prior worth 10 observations.
-    NaN with fewer than 100 contributions (too short a tail), $-\infty$ when the
-    largest values are all equal (a bounded integrand's flat top).
-    """
-    # The barrier keeps XLA from fusing the tail's `top_k` into the gathers below, which
-    # on the CPU turned an O(n) pass into a full sort (1.5 s instead of 10 ms at n = 2^22).
-    count, top = jax.lax.optimization_barrier((t.count, t.top))
-    m_tail = tail_size(count)
-    m_int = m_tail.astype(jnp.int32)
-    idx = jnp.arange(TAIL + 1)
-    threshold = jnp.take_along_axis(
-        top, jnp.broadcast_to(m_int, top.shape[:-1] + (1,)), axis=-1
-    )
-    in_tail = idx[:-1] < m_int
-    x = jnp.where(in_tail, top[..., :-1] - threshold, 0.0)  # decreasing; x[0] the largest
-    x_max = x[..., :1]
-    # The quartile x_(ceil(M/4)) in increasing order is at decreasing index M - ceil(M/4 + 1/2) + 1.
-    quart_at = m_int - jnp.floor(m_tail / 4 + 0.5).astype(jnp.int32)
-    x_quart = jnp.take_along_axis(x, jnp.broadcast_to(quart_at, x.shape[:-1] + (1,)), axis=-1)
-    safe_max = jnp.where(x_max > 0, x_max, 1.0)
-    safe_quart = jnp.where(x_quart > 0, x_quart, safe_max)
-    grid_size = 30 + jnp.floor(jnp.sqrt(m_tail))
-    j = jnp.arange(1, _GRID + 1, dtype=top.dtype)
-    on_grid = j <= grid_size
-    theta = 1 / safe_max + (1 - jnp.sqrt(grid_size / jnp.where(on_grid, j - 0.5, 1.0))) / (
-        _PRIOR_BS * safe_quart
-    )  # (..., grid)
-    terms = jnp.log1p(-theta[..., :, None] * x[..., None, :])
-    mean_log = jnp.sum(jnp.where(in_tail, terms, 0.0), axis=-1) / jnp.maximum(m_tail, 1)
-    k_grid = mean_log
-    log_like = m_tail * (jnp.log(-theta / jnp.where(k_grid != 0, k_grid, 1.0)) - k_grid - 1)
-    log_like = jnp.where(on_grid & (k_grid != 0) & jnp.isfinite(log_like), log_like, -jnp.inf)
-    weights = jax.nn.softmax(log_like, axis=-1)
-    theta_post = jnp.sum(weights * theta, axis=-1, keepdims=True)
-    k_post = jnp.sum(
-        jnp.where(in_tail, jnp.log1p(-theta_post * x), 0.0), axis=-1
-    ) / jnp.maximum(m_tail, 1)
-    k = (m_tail * k_post + _PRIOR_K * 0.5) / (m_tail + _PRIOR_K)
-    k = jnp.where(x_max[..., 0] > 0, k, -jnp.inf)
-    return jnp.where(m_tail >= MIN_TAIL, k, jnp.nan)
 
 
 def variance_out_of_range(est: Any) -> jax.Array:

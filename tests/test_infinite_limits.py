@@ -43,13 +43,7 @@ def normal_z(est, exact):
                              / np.asarray(est.stderr, float), np.asarray(est.dof, float))
 
 
-# On the half-line case 5 keys of 64 (k-hat 0.20-0.64 on QMC through the grid, errors of
-# 0.1 sd) get the i.i.d. bound: the power-law call's false alarms on f/q through a grid.
-_FALSE_ALARMS = pytest.mark.xfail(strict=True, reason="false power-law calls on grid_qmc")
-
-
-@pytest.mark.parametrize("name", [pytest.param(name, marks=_FALSE_ALARMS)
-                                  if name == "below and shifted" else name for name in CASES])
+@pytest.mark.parametrize("name", CASES)
 def test_auto_is_unbiased_and_honest_over_infinite_limits(name):
     # The default method, eagerly, on 64 keys: every key within 4 (normal-equivalent)
     # standard errors, and the mean squared z within 5 sigma of 1 for 64 keys (sd
