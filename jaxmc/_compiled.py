@@ -7,7 +7,9 @@ mappings of machine code, until the kernel's limit (`vm.max_map_count`, 65,530 b
 ends it ("LLVM compilation error: Cannot allocate memory"). `per_integrand` compiles the
 same way (arrays traced, everything else static), but as one `jax.jit` of a closure over
 the static part per distinct static part, held in a cache of the `MAX_PROGRAMS` used last:
-a program dropped from it is freed, and compiled anew if it is needed again.
+a program dropped from it is freed, and compiled anew if it is needed again. `per_shape`
+does the same for the stream's programs that serve every integrand of a shape, in a cache
+of their own.
 """
 
 from __future__ import annotations
