@@ -115,11 +115,13 @@ def floored_variance(variance: jax.Array, t: Tail) -> jax.Array:
     return jnp.maximum(variance, (stderr_floor(t) ** 2).astype(jnp.result_type(variance)))
 
 
-# Above this tail shape the values follow a power law (an unbounded integrand, or f/p with a
-# singular ratio): variance estimators from few replicas or pairs are skewed and too small.
-STRUCTURED_MAX_PARETO_K = 0.2
+# Above this tail shape the values' fourth moment is infinite (it is finite for k < 1/4): a
+# spread's own variance is then unbounded, and variance estimators from few replicas or
+# pairs are skewed and usually too small (an unbounded integrand, or f/p with a singular
+# ratio).
+STRUCTURED_MAX_PARETO_K = 0.25
 # ...called on this many exceedances at least (n >= 456): on fewer, k-hat's noise (sd about
-# (1 + k)/sqrt(M)) carries bounded tails (k < 0) past 0.2, swapping in a far wider bound.
+# (1 + k)/sqrt(M)) carries bounded tails (k < 0) past it, swapping in a far wider bound.
 STRUCTURED_MIN_TAIL = 64
 # A bound this many times the structured variance is flagged: an upper bound, not a stderr.
 CONSERVATIVE_RATIO = 4.0
@@ -152,7 +154,7 @@ def bounded_variance(variance: jax.Array, mean: jax.Array, t: Tail) -> tuple[jax
 
     Randomised QMC's variance comes from the $R - 1$ degrees of freedom of its
     replicas, a stratified one from pairs within each stratum. For an unbounded
-    integrand ($\hat k > 0.2$, e.g. $x^{-1/3}$ or $x^{-1/2}$) the few values
+    integrand ($\hat k > 1/4$, e.g. $x^{-1/3}$ or $x^{-1/2}$) the few values
     that carry the singularity make these estimates skewed and too small. There the i.i.d.
     variance of all contributions, $(\overline{c^2} - \bar c^2)/N$, is reported
     when larger: proportional stratification never has a larger variance, and a

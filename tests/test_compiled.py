@@ -48,11 +48,12 @@ def test_an_integrand_no_longer_used_is_released(monkeypatch, n):
 def test_another_budget_compiles_no_program(method):
     # The stream's programs read the budget as an array, and the pilot's sizes from it in
     # powers of two: a session that integrates at many budgets does not compile (and hold)
-    # a set of programs per budget. (A budget past a power of two may size a larger pilot;
-    # below a chunk of 2^18 evaluations, steps are as many blocks as the budget holds.)
+    # a set of programs per budget. (A budget past a power of two may size a larger pilot,
+    # and QMC's nets and blocks; below a chunk of 2^18 evaluations, steps are as many blocks
+    # as the budget holds.)
     lo, hi = box(2)
     f = _peak(0.37)
-    n = 2**19
+    n = 3 * 2**18
     first = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=n, method=method)
     with compiled_programs() as compiled:
         again = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=n + 3 * 2**14 + 7,

@@ -11,7 +11,7 @@ deviation of $\log \hat v$:
 - from $R$ replicas (randomised QMC's nets), the jackknife over the replicas (Efron and
   Stein 1981) of the whole figure, its projection to larger nets included.
 
-A figure whose values have a power-law tail (Pareto $\hat k$ above 0.2, as
+A figure whose values have a power-law tail (Pareto $\hat k$ above 1/4, as
 `jaxmc.stats` reads it) is the i.i.d. variance the stream will report there
 (`bounded_variance`), and its $\log$ has no finite standard deviation to speak of
 (the sample fourth moment diverges for $k \ge 1/4$).
@@ -89,11 +89,11 @@ def effective_points(values) -> jax.Array:
 
 def tail_evidence(values, z) -> tuple[jax.Array, jax.Array]:
     r"""Whether `values` `(n, ...)` have a power-law tail: `(suspected, evident)`, their Pareto
-    $\hat k$ above `STRUCTURED_MAX_PARETO_K` (0.2, where `jaxmc.stats` bounds a structured
+    $\hat k$ above `STRUCTURED_MAX_PARETO_K` (1/4, where `jaxmc.stats` bounds a structured
     variance by the i.i.d. one), and above it by `z` standard errors, $(1 + \hat k)/\sqrt{M}$
     for $M$ exceedances (the generalised Pareto fit's asymptotic error): on a few thousand
     values $\hat k$ is uncertain by about 0.1, and bounded values (a sum's exponential) read
-    above 0.2 by chance."""
+    above it by chance."""
     tail = tail_of(values)
     k = pareto_k(tail)
     count = tail.count

@@ -41,7 +41,7 @@ class NetFigures(eqx.Module):
 
     qmc: Figure  # QMC's, projected to the stream's nets
     plain: Figure  # plain Monte Carlo's on the same points
-    heavy: jax.Array  # the values may have a power-law tail (Pareto k-hat > 0.2)
+    heavy: jax.Array  # the values may have a power-law tail (Pareto k-hat > 1/4)
     blind: jax.Array  # they saw nothing, or too few effective points
     outlook: Figure  # a product density's, fitted and read on halves of the nets
 

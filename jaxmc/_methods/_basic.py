@@ -48,7 +48,10 @@ class QMC(AbstractMethod):
     - `min_replicas`: with a budget `n`, each replica gets the largest power of two of points
       that `min_replicas` replicas fit in, and the rest of the budget buys more replicas
       (3 to 5 by default): at QMC's rates fewer, larger nets are more accurate, and 3 replicas
-      leave the error bar 2 degrees of freedom. With a tolerance there are 8 replicas and the
+      leave the error bar 2 degrees of freedom. What whole nets leave buys each replica the
+      next points of its sequence, smaller nets that its mean weighs less (a net of half the
+      points by a quarter of the weight per point), so that at least 96% of `n` is spent and
+      each replica's mean stays unbiased. With a tolerance there are 8 replicas and the
       tolerance is checked when each holds a power of two of points, from $2^{10}$ on, and
       must pass twice in a row.
     """

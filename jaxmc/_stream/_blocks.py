@@ -24,6 +24,7 @@ from .._points._common import uint32_to_unit
 from .._points._registry import unit_points
 from .._points._sobol import sobol_block, sobol_scramble
 from .._stats import Moments, block_moments, merge_all, tail_of
+from ._sizes import extra_blocks
 
 
 def replica_points(scramble, position, log2_size: int, dtype) -> jax.Array:
@@ -48,6 +49,8 @@ class Context(eqx.Module):
     active: jax.Array | None = None
     per_replica: jax.Array | None = None
     nblocks: jax.Array | None = None
+    net_blocks: jax.Array | None = None
+    extra: jax.Array | None = None
 
 
 def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
@@ -55,20 +58,47 @@ def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
     `sizes.dynamic` QMC in nets that `min_replicas`, default `sizes.min_replicas`, fit in;
     both may be traced."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
-    scrambles = active = per_replica = nblocks = None
+    scrambles = active = per_replica = nblocks = net_blocks = extra = None
     limit = jnp.asarray(sizes.budget if budget is None else budget, jnp.int32)
     if sizes.method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(jax.random.split(key, sizes.replicas))
     if sizes.dynamic:
         # Nets of the largest power of two of points that `min_replicas` fit in the budget,
-        # as many replicas as fit; each walked block by block, replica after replica.
+        # as many replicas as fit, and the extra blocks the rest buys; each replica walked
+        # block by block, replica after replica.
         budget = jnp.asarray(budget, jnp.int32)
         fewest = sizes.min_replicas if min_replicas is None else min_replicas
         net = jnp.left_shift(1, 31 - jax.lax.clz(budget // fewest))
-        active, per_replica = budget // net, net // sizes.block
+        active, net_blocks = budget // net, net // sizes.block
+        extra = extra_blocks(budget, active, net, sizes.block)
+        per_replica = net_blocks + extra
         nblocks = active * per_replica
         limit = nblocks * sizes.block
-    return Context(key, frozen, lo, hi, limit, scrambles, active, per_replica, nblocks)
+    elif sizes.net_blocks:
+        net_blocks = jnp.asarray(sizes.net_blocks, jnp.int32)
+        extra = limit // (sizes.block * sizes.replicas) - net_blocks
+    return Context(key, frozen, lo, hi, limit, scrambles, active, per_replica, nblocks,
+                   net_blocks, extra)
+
+
+def block_weight(position, net_blocks, extra):
+    r"""The weight of a replica's block at `position` (in blocks) in its mean, relative to a
+    block of its net of `net_blocks` (a power of two), where `extra` blocks follow the net.
+
+    The extra blocks split, by the binary digits of `extra`, into aligned runs of $2^b$
+    blocks, each a net of its own (Sobol' points in aligned runs of a power of two are
+    nets). The replica's mean weighs these nets $w_j \propto s_j^{lpha}$ ($s_j$ its
+    points), each point by $s_j^{lpha - 1}$, as their variances $\propto s_j^{-lpha}$
+    would ask under a rate $lpha$ between plain Monte Carlo's 1 and smooth QMC's 3: with
+    $lpha = 2$, a net of half the points adds a quarter of its points' weight, which
+    lowers the variance in either case (weights by the count alone raise it where QMC's rate
+    is 3). The weights are fixed before any point is drawn, so each replica's mean stays
+    unbiased and the replicas' spread its variance."""
+    if net_blocks is None:
+        return 1.0
+    beyond = jnp.asarray(position - net_blocks, jnp.int32)
+    run = jnp.left_shift(1, 31 - jax.lax.clz(jnp.maximum(beyond ^ extra.astype(jnp.int32), 1)))
+    return jnp.where(beyond < 0, 1.0, run / jnp.maximum(net_blocks, 1))
 
 
 def replica_of(ctx: Context, b, *, sizes):
@@ -180,9 +210,12 @@ def _block_moments(ctx: Context, b, inside, fx, aux, *, sizes):
         unit = jnp.where(m.count > 0, 1.0, 0.0).astype(dtype)
         m = Moments(unit, m.mean, jnp.zeros_like(m.m2), m.tail)
     if method == "qmc":
-        # Its replica's running mean weighs it by its points.
-        m = _one_hot_moments(m._replace(count=m.count * sizes.block),
-                             replica_of(ctx, b, sizes=sizes)[0], sizes.replicas)
+        # Its replica's running mean weighs it by its points, beyond the net less
+        # (`block_weight`).
+        replica, position = replica_of(ctx, b, sizes=sizes)
+        weight = jnp.asarray(block_weight(position, ctx.net_blocks, ctx.extra), m.count.dtype)
+        m = _one_hot_moments(m._replace(count=m.count * sizes.block * weight), replica,
+                             sizes.replicas)
     evaluations = jnp.sum(valid, dtype=jnp.int32)
     return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
 

@@ -71,6 +71,10 @@ class Sizes(eqx.Module):
     # the most it may be, `replicas` the most replicas, and `min_replicas` sizes the nets.
     dynamic: bool = eqx.field(static=True, default=False)
     min_replicas: int = eqx.field(static=True, default=QMC_MIN_REPLICAS)
+    # Randomised QMC on a fixed budget: blocks in each replica's net (a power of two), after
+    # which it walks `extra_blocks` more (0: none, as with a tolerance; `dynamic` sizes
+    # find both when they run).
+    net_blocks: int = eqx.field(static=True, default=0)
 
     def per_block(self) -> Sizes:
         """These sizes without the budget's (`budget`, `blocks`, `steps`, `early_steps`):
@@ -101,11 +105,13 @@ def sizes(
 
     Randomised QMC with a fixed budget gives each replica the largest power of
     two of points that `min_replicas` replicas fit in (whole nets, where its
-    error is smallest) and spends what is left on more replicas (3 to 5 by default);
-    with a tolerance there are `QMC_REPLICAS` and the nets grow.
+    error is smallest), spends what is left on more replicas (3 to 5 by default)
+    and what those leave on extra blocks of every replica (`extra_blocks`, weighed
+    by `_blocks.block_weight`); with a tolerance there are `QMC_REPLICAS` and the
+    nets grow.
     """
     strata: tuple[int, ...] = ()
-    replicas = 1
+    replicas, net_blocks = 1, 0
     if method in ("plain", "importance"):
         # Smaller budgets get one power-of-two block, so little is masked away.
         block = min(BLOCK, 1 << max(0, math.ceil(math.log2(budget))))
@@ -123,8 +129,9 @@ def sizes(
         else:
             net = final_net(budget, min_replicas)  # points per replica
             replicas = budget // net
-            block = min(BLOCK, net)
-            blocks = (net // block) * replicas
+            block = extra_block(net)
+            net_blocks = net // block
+            blocks = (net_blocks + extra_blocks(budget, replicas, net, block)) * replicas
         budget = blocks * block
     else:
         # Block methods need several blocks for a variance: at least 8.
@@ -154,20 +161,38 @@ def sizes(
         per_step = replicas * (1 << int(math.floor(math.log2(rounds))))
     steps = -(-blocks // per_step)
     early = early_steps(per_step, devices, replicas) if tolerant else 1
-    return Sizes(method, block, blocks, budget, per_step, steps, early, strata, replicas)
+    return Sizes(method, block, blocks, budget, per_step, steps, early, strata, replicas,
+                 net_blocks=net_blocks)
+
+
+# Randomised QMC on a fixed budget walks its nets in blocks of at most 1/EXTRA_GRAIN of a net,
+# so that what whole nets leave (up to a quarter of the budget) buys extra blocks of every
+# replica: the last replica-round of blocks it cannot buy is at most 1/EXTRA_GRAIN of it.
+EXTRA_GRAIN = 32
+
+
+def extra_block(net: int) -> int:
+    """Points per block of randomised QMC with nets of `net` points on a fixed budget."""
+    return max(1, min(BLOCK, net // EXTRA_GRAIN))
+
+
+def extra_blocks(budget, replicas, net, block):
+    """Blocks each of `replicas` replicas walks beyond its net of `net` points on `budget`
+    evaluations (Python ints or arrays)."""
+    return (budget - replicas * net) // (replicas * block)
 
 
 def dynamic_qmc_sizes(cap: int, floor: int, chunk: int, devices: int,
                       min_replicas: int = QMC_MIN_REPLICAS) -> Sizes:
     """Randomised QMC's sizes for a budget known only when the stream runs, from `floor` to
-    `cap` (one compiled program for all of them): blocks as large as the smallest budget's
-    nets allow, and room for every budget's replicas (fewer than `2 * min_replicas`: a budget
-    holds fewer than twice `min_replicas` of its largest nets). The stream walks each
-    replica's net block by block, replica after replica, and skips the steps past its
-    budget's blocks."""
+    `cap` (one compiled program for all of them): blocks of `extra_block` of the smallest
+    budget's nets, and room for every budget's replicas (fewer than `2 * min_replicas`: a
+    budget holds fewer than twice `min_replicas` of its largest nets). The stream walks each
+    replica's net and its extra blocks block by block, replica after replica, and skips the
+    steps past its budget's blocks."""
     if floor < 2 * min_replicas or cap < floor:
         raise ValueError(f"a budget of at least {2 * min_replicas} is needed, got {floor}.")
-    block = min(BLOCK, final_net(floor, min_replicas))
+    block = extra_block(final_net(floor, min_replicas))
     blocks = cap // block
     per_step = min(max(1, -(-chunk // block), devices), blocks)
     steps = -(-blocks // per_step)
