@@ -108,6 +108,27 @@ def test_summary_shows_the_race_and_its_winner():
                                           method="plain").summary())(jax.random.key(0))
 
 
+def test_summary_shows_the_grids_training_rounds():
+    # The VEGAS+ rounds that trained the grid, as vegas's summary shows its iterations: one
+    # row each, with the running weighted average's chi2/dof and Q; none where no grid was
+    # trained.
+    peak = lambda x: jnp.exp(-jnp.sum((x - 0.4) ** 2) / (2 * 0.05**2))  # noqa: E731
+    est = jaxmc.integrate(jax.random.key(0), peak, [0.0] * 4, [1.0] * 4, n=100_000,
+                          method="adaptive")
+    rounds = int(est.rounds.n.shape[0])
+    text = est.summary()
+    assert "training rounds" in text and "chi2/dof" in text
+    last = jaxmc.stats.combine(est.rounds, sequential=True)
+    table = text.split("not in the estimate):\n", 1)[1]
+    assert compact(est.rounds.mean[-1], est.rounds.stderr[-1]) in table
+    assert compact(last.mean, last.stderr) in table
+    assert sum(line.lstrip().startswith(f"{i + 1} ") for i in range(rounds)
+               for line in table.splitlines()) >= rounds
+    qmc = jaxmc.integrate(jax.random.key(0), peak, [0.0] * 4, [1.0] * 4, n=100_000,
+                          method="qmc")
+    assert qmc.rounds is None and "training rounds" not in qmc.summary()
+
+
 @pytest.mark.skipif(sys.version_info < (3, 11), reason="exception notes need Python 3.11")
 def test_an_integrand_written_for_a_batch_hears_of_batched():
     f = lambda x: jnp.exp(-x[:, 0] ** 2 - x[:, 1] ** 2)  # noqa: E731  (a batch, not a point)

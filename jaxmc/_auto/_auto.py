@@ -177,6 +177,7 @@ def _joined(early, rest):
 
 class _GridStage(eqx.Module):
     state: Any
+    parts: Any  # the training rounds' estimates
     samples: Any
     adaptive: Figure
     through: Figure
@@ -266,12 +267,12 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
         y = grid_qmc_values(grid_key, grid, f, batched, s.per_replica.bit_length() - 1)
         through = grid_qmc_figure(y, np.asarray(after_grid, dtype), z=z)
         if not s.mixture_n:
-            return _GridStage(training.state, training.samples, figure, through, None,
+            return _GridStage(training.state, training.parts, training.samples, figure, through, None,
                               jnp.full((), jnp.inf, lo.dtype), None, jnp.asarray(False))
         seeded, outlook = mixture_outlook(grid, training.samples)
         modes, misses = search_modes(qmc_key, early[0], grid, training.samples, f=f,
                                      batched=batched)
-        return _GridStage(training.state, training.samples, figure, through, seeded,
+        return _GridStage(training.state, training.parts, training.samples, figure, through, seeded,
                           outlook, modes, misses)
 
     grid = stage(grid_on, grid_stage)
@@ -307,9 +308,10 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
     est = dataclasses.replace(est, n=est.n + pilot.evaluations)
     options = [QMC()] + ([] if grid is None else [adaptive, through])
     options += [] if mixture is None else [Importance(fitted)]
+    rounds = None if grid is None else grid.parts  # (read where `pilot.stages` says it ran)
     if is_concrete(pilot.choice):
-        return Run(est, options[int(pilot.choice)], pilot)
-    return Run(est, OneOf(pilot.choice, tuple(options)), pilot)
+        return Run(est, options[int(pilot.choice)], pilot, rounds)
+    return Run(est, OneOf(pilot.choice, tuple(options)), pilot, rounds)
 
 
 def _qmc_stream(problem: Problem, key, rest, rests, done):

@@ -19,7 +19,7 @@ import numpy as np
 from jax.sharding import AbstractMesh, AxisType, Mesh
 
 from .._auto._auto import Auto
-from .._auto._pilot import Pilot
+from .._auto._pilot import STAGES, Pilot
 from .._checks import (
     MAX_COUNT,
     check_bounds,
@@ -30,6 +30,7 @@ from .._checks import (
     check_key,
     is_concrete,
 )
+from .._combine import combine
 from .._diagnostics import (
     reliability_reasons,
     trusted,
@@ -75,6 +76,11 @@ class IntegrationEstimate(Estimate):
       pytree. `integrate(..., method=est.plan)` streams at once, without a pilot or
       training.
     - `pilot`: for `"auto"`, the pilot's record (`jaxmc.methods.Pilot`), else `None`.
+    - `rounds`: where a VEGAS+ grid was trained (`"adaptive"`, `"grid_qmc"`,
+      `"importance"`, `"auto"`'s grid stage), its training rounds: an `Estimate` stacked
+      along its first axis, one per round, whose points adapted the grid and are not in
+      `mean`; else `None`. `summary()` shows them as vegas's `summary()` shows its
+      iterations.
     - `converged`: with a tolerance, whether the standard error met it and the diagnostics
       trust it (`stats.unreliable` of the estimate is False: never where no value was
       non-zero or the variance left its dtype's range); else `None`.
@@ -83,13 +89,15 @@ class IntegrationEstimate(Estimate):
     method: str = eqx.field(static=True)
     plan: AbstractMethod
     pilot: Pilot | None
+    rounds: Estimate | None
     converged: jax.Array | None
 
     def summary(self) -> str:
         """What made this estimate, as text (outside `jit`): the estimate and its counts, the
         method that streamed; for `"auto"` the pilot's race (each candidate's relative
         variance per evaluation, its uncertainty and cost, the winner) and the stages that
-        ran; the tolerance's verdict; the diagnostics' reasons for distrust, if any."""
+        ran; where a VEGAS+ grid was trained, its rounds with the running average's chi2/dof
+        and Q; the tolerance's verdict; the diagnostics' reasons for distrust, if any."""
         if not concrete(self):
             raise ValueError("`summary()` needs concrete values: call it outside `jit`.")
         lines = [f"estimate: {self}  (n = {int(np.max(self.n)):,} evaluations)"]
@@ -99,6 +107,10 @@ class IntegrationEstimate(Estimate):
         lines.append(stream)
         if self.pilot is not None:
             lines.append(self.pilot.table())
+        trained = self.pilot is None or bool(np.asarray(self.pilot.stages)[STAGES.index("grid")])
+        if self.rounds is not None and trained and jnp.ndim(self.rounds.n) == 1:
+            lines.append("the grid's training rounds (VEGAS+, not in the estimate):")
+            lines.append(combine(self.rounds, sequential=True).summary())
         dof = np.min(np.asarray(self.dof, float))
         lines.append("error bar: " + ("Gaussian (many degrees of freedom)" if not np.isfinite(dof)
                                       else f"Student's t, {dof:.0f} degrees of freedom")
@@ -235,7 +247,7 @@ def integrate(
                 f"the infinite axes; give a budget of at least {4 * probes}, got {budget}.")
         maps = fit_maps(key_maps, f, lo, hi, kinds=kinds, pilot=pilot_size, batched=batched)
         method = Mapped(method, jax.lax.stop_gradient(maps))
-    est, plan, pilot = method.run(key, problem, budget - probes)
+    est, plan, pilot, rounds = method.run(key, problem, budget - probes)
     if probes:
         est = dataclasses.replace(est, n=est.n + probes)
     # (Values dropped on request, with nonfinite="drop", are not news.)
@@ -251,7 +263,7 @@ def integrate(
     streamed = plan.method if isinstance(plan, Mapped) else plan
     name = streamed.name if is_concrete(getattr(streamed, "choice", 0)) else "auto"
     est = IntegrationEstimate(**estimate_fields(est), method=name, plan=plan, pilot=pilot,
-                              converged=converged)
+                              rounds=rounds, converged=converged)
     if tolerant:
         est = _forward_mode_only(est)
     if nonfinite == "raise":

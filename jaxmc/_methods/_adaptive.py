@@ -85,7 +85,8 @@ class Adaptive(AbstractMethod):
         probe = dataclasses.replace(self, state=first.state)
         if sizing == budget:
             est = probe.stream(key, problem, budget - first.spent, done=first.spent)
-            return Run(dataclasses.replace(est, n=est.n + first.spent), probe)
+            return Run(dataclasses.replace(est, n=est.n + first.spent), probe,
+                       rounds=first.parts)
         # Trained as for `PROBE_BUDGET` (only a tolerance): trained anew for the whole budget
         # where the probe's grid needs more than `PROBE_REACH` times that for the tolerance.
         anew = _needs_more(first.parts, problem.rtol, round_size=first.state.draw.u.shape[0],
@@ -99,8 +100,10 @@ class Adaptive(AbstractMethod):
         est = switch(anew, streams)
         est = dataclasses.replace(est, n=est.n + jnp.where(anew, spent, first.spent))
         if is_concrete(anew):
-            return Run(est, sized if bool(anew) else probe)
-        return Run(est, OneOf(anew.astype(jnp.int32), (probe, sized)))
+            return (Run(est, sized, rounds=second.parts) if bool(anew)
+                    else Run(est, probe, rounds=first.parts))
+        # (Traced: the probe's rounds, whose shape the second training's need not share.)
+        return Run(est, OneOf(anew.astype(jnp.int32), (probe, sized)), rounds=first.parts)
 
     def stream(self, key, problem: Problem, budget: int, done=0):
         """Refining rounds from `state` (under `finer`, larger rounds on a finer grid); with a

@@ -47,7 +47,8 @@ class GridQMC(AbstractMethod):
         training = train(train_key, problem, problem.pilot_budget(budget))
         plan = dataclasses.replace(self, grid=training.state.grid)
         est = plan.stream(key, problem, budget - training.spent, done=training.spent)
-        return Run(dataclasses.replace(est, n=est.n + training.spent), plan)
+        return Run(dataclasses.replace(est, n=est.n + training.spent), plan,
+                   rounds=training.parts)
 
     def stream(self, key, problem: Problem, budget: int, done=0):
         """`budget` evaluations of QMC's nets through the grid (bent at singular faces, with

@@ -56,14 +56,16 @@ class Importance(AbstractMethod):
         if problem.lo.ndim == 0:  # (in one dimension the grid is any piecewise-constant density)
             plan = Importance(training.state.grid)
             est = stream(key, problem, budget - training.spent, plan.proposal, training.spent)
-            return Run(dataclasses.replace(est, n=est.n + training.spent), plan)
+            return Run(dataclasses.replace(est, n=est.n + training.spent), plan,
+                       rounds=training.parts)
         mixture = seeded_mixture(training.state.grid, training.samples)
         size = min(training.samples.weights.shape[0], SEED_POINTS)
         x, p = _draw(draw_key, mixture, size=size)
         draws = (x, mixture_values(x, p, f=problem.f, batched=problem.batched))
         spent = training.spent + size
         run = adapted(key, problem, budget - spent, mixture, draws, spent)
-        return run._replace(estimate=dataclasses.replace(run.estimate, n=run.estimate.n + spent))
+        return run._replace(estimate=dataclasses.replace(run.estimate, n=run.estimate.n + spent),
+                            rounds=training.parts)
 
 
 def adapted(key, problem: Problem, budget: int, mixture, draws, done, sized_by=None) -> Run:

@@ -38,5 +38,5 @@ class Mapped(AbstractMethod):
         lo, hi = self.maps.box(problem.lo, problem.hi)
         mapped = dataclasses.replace(
             problem, f=MappedIntegrand(problem.f, self.maps, problem.batched), lo=lo, hi=hi)
-        est, plan, pilot = self.method.run(key, mapped, budget)
-        return Run(est, Mapped(plan, self.maps), pilot)
+        run = self.method.run(key, mapped, budget)
+        return run._replace(plan=Mapped(run.plan, self.maps))

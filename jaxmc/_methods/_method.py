@@ -93,11 +93,13 @@ class Problem:
 
 class Run(NamedTuple):
     """What a method's `run` returns: the estimate, the plan that reproduces its stream
-    (the method with what it trained), and, for `Auto`, the pilot's record."""
+    (the method with what it trained), for `Auto` the pilot's record, and where a VEGAS+ grid
+    was trained its training rounds (an `Estimate` stacked along its first axis)."""
 
     estimate: Estimate
     plan: AbstractMethod
     pilot: Any = None
+    rounds: Any = None
 
 
 class AbstractMethod(eqx.Module):
