@@ -178,3 +178,10 @@ def test_bad_inputs_name_the_argument(name):
     for change, error, match in BAD_INPUTS:
         with pytest.raises(error, match=match):
             call(**{**GOOD, **change})
+
+
+def test_strata_beyond_int32_are_refused_however_large():
+    # 2^31 strata per axis in 3-D: 2^93 cells, whose NumPy product wrapped around to 0.
+    with pytest.raises(ValueError, match="per_stratum"):
+        jaxmc.stratified(jax.random.key(0), lambda x: x[0], jnp.zeros(3), jnp.ones(3),
+                         (2**31,) * 3)

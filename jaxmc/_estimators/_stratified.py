@@ -2,6 +2,7 @@ r"""Stratified sampling over a grid of strata (Owen 2013, ch. 8; PBRT 3rd ed. §
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -118,7 +119,7 @@ def stratified(
     d = 1 if lo.ndim == 0 else lo.shape[0]
     counts = check_counts(counts, d, scalar=lo.ndim == 0)
     m = check_count(per_stratum, "per_stratum")
-    cells = int(np.prod(counts))
+    cells = math.prod(counts)  # (exact: a NumPy product of large counts wraps around)
     if cells * m > MAX_COUNT:
         raise ValueError(
             f"`counts` {counts} with `per_stratum` = {m} give {cells * m:,} evaluations, which "
