@@ -94,3 +94,55 @@ def _compile(fn: Callable, static: Any) -> Callable:
 def _signature(dynamic) -> Hashable:
     leaves, treedef = jax.tree.flatten(dynamic)
     return treedef, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)
+
+
+# Memory mappings. On Linux every compiled CPU program holds some (its code and data
+# sections), and the kernel allows a process `vm.max_map_count` of them (65,530 by
+# default): past it the next compilation fails ("LLVM compilation error: Cannot allocate
+# memory") and ends the process. The caches above are bounded, but JAX's own caches keep
+# every program compiled for a shape (each dimension, budget range and method of a session
+# adds its set). After every `CHECK_EVERY` compilations the mappings are counted; past
+# `CROWDED_SHARE` of the limit, the next eager `integrate` or `expectation` first clears
+# these caches and JAX's (`jax.clear_caches`): its programs, and the session's, are
+# compiled anew when next needed, where the alternative is the end of the process.
+CHECK_EVERY = 16
+CROWDED_SHARE = 0.6
+
+_compilations = 0
+_crowded = False
+
+
+def _mappings() -> tuple[int, int] | None:
+    """`(mappings held, the kernel's limit)`, where the system says (Linux), else None."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as limit, open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps), int(limit.read())
+    except (OSError, ValueError):
+        return None
+
+
+def _compiled_one(event: str, duration: float, **_: Any) -> None:
+    global _compilations, _crowded
+    if event != "/jax/core/compile/backend_compile_duration":
+        return
+    _compilations += 1
+    if _compilations % CHECK_EVERY == 0:
+        held = _mappings()
+        _crowded = _crowded or (held is not None and held[0] > CROWDED_SHARE * held[1])
+
+
+jax.monitoring.register_event_duration_secs_listener(_compiled_one)
+
+
+def release_if_crowded(*inputs: Any) -> bool:
+    """Clear the compiled programs (these caches and JAX's) if the process's memory mappings
+    crowded its limit at the last count, and no leaf of `inputs` (a call's arguments) is
+    traced: eagerly, between programs, never inside a trace. Whether it did."""
+    global _crowded
+    if not _crowded or any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(inputs)):
+        return False
+    _programs.clear()
+    _shape_programs.clear()
+    jax.clear_caches()
+    _crowded = False
+    return True

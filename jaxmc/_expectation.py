@@ -33,6 +33,7 @@ from ._checks import (
     check_key,
     is_concrete,
 )
+from ._compiled import release_if_crowded
 from ._diagnostics import rounding_floor, warn_if_unreliable
 from ._fit._vegas import strata_per_axis, stratified_unit_points
 from ._integrand import bind, evaluate
@@ -212,6 +213,7 @@ def expectation(
     n = check_count(n, "n", minimum=MIN_N, maximum=MAX_COUNT)
     method = check_choice(method, "method", METHODS)
     batched = check_flag(batched, "batched")
+    release_if_crowded(key, lo, hi, g, log_density)
     _check_outputs(g, log_density, lo, batched)
     probes = 0
     if kinds is not None:

@@ -60,3 +60,28 @@ def test_another_budget_compiles_no_program(method):
                                 method=method)
     assert compiled == [], f"{len(compiled)} programs compiled"
     assert again.n > first.n  # (the larger budget was spent, not the first one's)
+
+
+def test_a_session_near_the_mapping_limit_clears_its_programs_and_goes_on(monkeypatch):
+    # Past CROWDED_SHARE of the kernel's limit on memory mappings (here made 0), the next
+    # eager call clears the compiled programs first and still integrates correctly; a call
+    # under jit does not clear them mid-trace.
+    if _compiled._mappings() is None:
+        pytest.skip("no /proc memory-mapping count here")
+    cleared = []
+    clear = jax.clear_caches
+    monkeypatch.setattr(jax, "clear_caches", lambda: (cleared.append(1), clear())[1])
+    monkeypatch.setattr(_compiled, "_crowded", False)  # (restored as False afterwards)
+    monkeypatch.setattr(_compiled, "CROWDED_SHARE", 0.0)
+    monkeypatch.setattr(_compiled, "CHECK_EVERY", 1)
+    lo, hi = box(2)
+    jaxmc.integrate(jax.random.key(0), _peak(0.33), lo, hi, n=2**12)  # (compiles: crowded)
+    assert _compiled._crowded and not cleared
+    jax.jit(lambda k: jaxmc.integrate(k, _peak(0.34), lo, hi, n=2**12).mean)(jax.random.key(1))
+    assert not cleared
+    est = jaxmc.integrate(jax.random.key(2), _peak(0.35), lo, hi, n=2**12, method="qmc")
+    assert len(cleared) == 1
+    sd = jnp.sqrt(0.005)
+    exact = jnp.pi * 0.01 * jnp.prod(jax.scipy.special.ndtr((hi - 0.35) / sd)
+                                     - jax.scipy.special.ndtr((lo - 0.35) / sd))
+    assert abs(float(est.mean) - float(exact)) <= 5 * float(est.stderr)

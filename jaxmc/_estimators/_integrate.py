@@ -31,6 +31,7 @@ from .._checks import (
     is_concrete,
 )
 from .._combine import combine
+from .._compiled import release_if_crowded
 from .._diagnostics import (
     reliability_reasons,
     trusted,
@@ -234,6 +235,7 @@ def integrate(
     # (An absent tolerance is a NumPy zero: an eager jnp constant costs ~30 us a call.)
     rtol, atol = (np.zeros((), lo.dtype) if tol is None else jnp.asarray(tol, lo.dtype)
                   for tol in (rtol, atol))
+    release_if_crowded(key, lo, hi, f)
     problem = Problem(f, lo, hi, batched, chunk or CHUNK, _blocks_mesh(mesh), tolerant,
                       progress, rtol, atol, chunk or SMALL_CHUNK, probe=n is None)
     probes = 0
