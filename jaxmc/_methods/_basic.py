@@ -50,7 +50,8 @@ class QMC(AbstractMethod):
       (3 to 5 by default): at QMC's rates fewer, larger nets are more accurate, and 3 replicas
       leave the error bar 2 degrees of freedom. What whole nets leave buys each replica the
       next points of its sequence, smaller nets that its mean weighs less (a net of half the
-      points by a quarter of the weight per point), so that at least 96% of `n` is spent and
+      points by a quarter of the weight per point, as a scrambled net's variance on a smooth
+      integrand, O(s^-3), asks), so that at least 96% of `n` is spent and
       each replica's mean stays unbiased. With a tolerance there are 8 replicas and the
       tolerance is checked when each holds a power of two of points, from $2^{10}$ on, and
       must pass twice in a row.

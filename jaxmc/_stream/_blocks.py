@@ -87,18 +87,17 @@ def block_weight(position, net_blocks, extra):
 
     The extra blocks split, by the binary digits of `extra`, into aligned runs of $2^b$
     blocks, each a net of its own (Sobol' points in aligned runs of a power of two are
-    nets). The replica's mean weighs these nets $w_j \propto s_j^{lpha}$ ($s_j$ its
-    points), each point by $s_j^{lpha - 1}$, as their variances $\propto s_j^{-lpha}$
-    would ask under a rate $lpha$ between plain Monte Carlo's 1 and smooth QMC's 3: with
-    $lpha = 2$, a net of half the points adds a quarter of its points' weight, which
-    lowers the variance in either case (weights by the count alone raise it where QMC's rate
-    is 3). The weights are fixed before any point is drawn, so each replica's mean stays
-    unbiased and the replicas' spread its variance."""
+    nets). The replica's mean weighs these nets $w_j \propto s_j^3$ ($s_j$ its points), each
+    point by $(s_j/\mathrm{net})^2$, as their variances ask at the best rate of a scrambled
+    net on a smooth integrand, $O(s^{-3})$ (Owen 1997): at that rate and below it they never
+    raise the variance (weights by the count alone raise it there). The weights are fixed
+    before any point is drawn, so each replica's mean stays unbiased and the replicas'
+    spread its variance."""
     if net_blocks is None:
         return 1.0
     beyond = jnp.asarray(position - net_blocks, jnp.int32)
     run = jnp.left_shift(1, 31 - jax.lax.clz(jnp.maximum(beyond ^ extra.astype(jnp.int32), 1)))
-    return jnp.where(beyond < 0, 1.0, run / jnp.maximum(net_blocks, 1))
+    return jnp.where(beyond < 0, 1.0, (run / jnp.maximum(net_blocks, 1)) ** 2)
 
 
 def replica_of(ctx: Context, b, *, sizes):
