@@ -13,9 +13,8 @@ import pytest
 from scipy.special import erf
 
 import jaxmc
-from jaxmc._auto._auto import schedule
 from jaxmc._auto._figures import Figure, iid_figure
-from jaxmc._auto._nets import NetFigures, net_values, nets_figures, product_outlook, qmc_figure
+from jaxmc._auto._nets import NetFigures, net_values, product_outlook, qmc_figure
 from jaxmc._auto._race import (
     ADAPTIVE,
     GRID_QMC,
@@ -44,9 +43,9 @@ def _figure(value, log_sd=0.1):
     return Figure(jnp.asarray(value, float), jnp.asarray(log_sd, float))
 
 
-def _nets(qmc, plain, outlook, *, log_sd=0.1, blind=False, heavy=False, penalty=1.0):
+def _nets(qmc, plain, outlook, *, log_sd=0.1, blind=False, heavy=False):
     return NetFigures(_figure(qmc, log_sd), _figure(plain, log_sd), jnp.asarray(heavy),
-                      jnp.asarray(blind), _figure(outlook, log_sd), jnp.asarray(penalty))
+                      jnp.asarray(blind), _figure(outlook, log_sd))
 
 
 # ----------------------------------------------------------------------------------------
@@ -73,10 +72,8 @@ def test_a_stage_runs_while_one_of_its_candidates_can_win():
     # far) nor QMC through it (it would gain over QMC what the density gains over uniform, 2x,
     # less than its cost and the stage's price) can win.
     assert not bool(grid_can_win(_nets(1e-4, 1.0, 0.5), COSTS, price, z))
-    # A density that gains 100x: QMC through the grid could; not if QMC's rate on f beyond
-    # 1, which no grid's map keeps, flatters its projection 1000x.
+    # A density that gains 100x: QMC through the grid could.
     assert bool(grid_can_win(_nets(1e-4, 1.0, 0.01), COSTS, price, z))
-    assert not bool(grid_can_win(_nets(1e-4, 1.0, 0.01, penalty=1e3), COSTS, price, z))
     # QMC no better than plain MC, the density 2x: the grid alone could.
     assert bool(grid_can_win(_nets(1.0, 1.0, 0.2), COSTS, price, z))
     # Uncertain figures widen the bounds: the same 2x density, read on so few points that it
@@ -89,33 +86,6 @@ def test_a_stage_runs_while_one_of_its_candidates_can_win():
     for flags in (dict(blind=True), dict(heavy=True)):
         assert bool(grid_can_win(_nets(1e-4, 1.0, 0.5, **flags), COSTS, price, z))
     assert bool(grid_can_win(_nets(np.nan, 1.0, 0.5), COSTS, price, z))
-
-
-def test_the_grid_stage_is_priced_in_time_as_well_as_evaluations():
-    auto = Auto()
-    s = schedule(auto, 10**5, 10**5, 2)
-    prices = s.prices(auto, 1)
-    # Dearer than the evaluations it takes from the stream alone, the more so for a candidate
-    # whose own evaluations are cheap, and for a grid whose rounds cost more.
-    assert np.all(prices > s.rests[1] / s.rests[2])
-    assert prices[GRID_QMC] > prices[ADAPTIVE] > prices[IMPORTANCE]
-    dearer = s.prices(Auto(round_cost=4 * auto.round_cost), 1)
-    assert dearer[GRID_QMC] > prices[GRID_QMC]
-    # Small rounds cost the grid more per evaluation than large ones.
-    large = schedule(auto, 10**7, 10**7, 2)
-    assert s.costs(auto)[ADAPTIVE] > large.costs(auto)[ADAPTIVE] > auto.costs[ADAPTIVE]
-
-
-def test_a_rate_no_grids_map_keeps_is_not_promised_through_it():
-    # QMC's nets on a smooth integrand fall faster than rate 1: projected through a grid's map
-    # its gain is discounted (penalty > 1); on a peak the nets cannot resolve, not at all.
-    def penalty(f, d, seed):
-        lo, hi = box(d)
-        y, bins = net_values(jax.random.key(seed), lo, hi, f, False, 0, 4, 8)
-        return float(nets_figures(y, bins, 16.0, 2.0).mapped_penalty)
-
-    assert np.median([penalty(cos_product, 2, seed) for seed in range(5)]) > 2.0
-    assert max(penalty(peak(4, s=0.05), 4, seed) for seed in range(3)) == 1.0
 
 
 def test_the_mixture_is_measured_only_where_its_outlook_could_win():

@@ -27,16 +27,7 @@ from ._mixture import mixture_outlook, mixture_pilot, search_modes
 from ._modes import search_evaluations
 from ._nets import MAX_NET_GROWTH, REPLICAS, NetFigures, net_values, nets_figures
 from ._pilot import Pilot
-from ._race import (
-    ADAPTIVE,
-    CANDIDATES,
-    GRID_QMC,
-    IMPORTANCE,
-    choose,
-    grid_can_win,
-    mixture_can_win,
-    pooled_any,
-)
+from ._race import CANDIDATES, choose, grid_can_win, mixture_can_win, pooled_any
 
 
 class Auto(AbstractMethod):
@@ -71,9 +62,6 @@ class Auto(AbstractMethod):
       VEGAS+ round's map, stratified allocation and refinement; the grid's map; a draw from
       the mixture, its truncated normals and both parts' densities). For an integrand that
       costs more than these, set them nearer 1.
-    - `round_cost`: the time of a VEGAS+ round's fixed work (its allocation, the grid's
-      refinement, the dispatch of their programs) in Sobol' points: on rounds of a few
-      thousand points it outweighs the points' own, in the grid's training and stream alike.
     - `confidence`: the standard deviations of its log at which a figure's bounds are read:
       a stage is skipped only when its candidates' optimistic bounds lose to the leader's
       pessimistic one.
@@ -88,7 +76,6 @@ class Auto(AbstractMethod):
 
     costs: tuple[float, float, float, float] = eqx.field(default=(1.0, 5.0, 3.0, 15.0),
                                                          static=True)
-    round_cost: float = eqx.field(default=16384.0, static=True)
     confidence: float = eqx.field(default=2.0, static=True)
     pilot_share: float = eqx.field(default=1 / 16, static=True)
     mixture_points: int = eqx.field(default=4096, static=True)
@@ -101,8 +88,6 @@ class Auto(AbstractMethod):
                              f"candidate {CANDIDATES}, got {self.costs!r}.")
         if not 0 < self.pilot_share <= 0.25:
             raise ValueError(f"`pilot_share` must be in (0, 1/4], got {self.pilot_share!r}.")
-        if self.round_cost < 0:
-            raise ValueError(f"`round_cost` must be >= 0, got {self.round_cost!r}.")
         if self.confidence < 0:
             raise ValueError(f"`confidence` must be >= 0, got {self.confidence!r}.")
 
@@ -142,26 +127,6 @@ class Schedule:
         return (REPLICAS * self.early, qmc - REPLICAS * self.early,
                 self.rounds * self.round_size + qmc + self.search_n, self.mixture_n)
 
-    def costs(self, auto: Auto) -> np.ndarray:
-        """The candidates' times per evaluation: `auto.costs`, the grid's with its rounds'
-        fixed work (`round_cost`) spread over their points."""
-        costs = np.asarray(auto.costs, np.float64)
-        costs[ADAPTIVE] += auto.round_cost / self.round_size
-        return costs
-
-    def prices(self, auto: Auto, before: int) -> np.ndarray:
-        r"""What the grid's stage costs each candidate measured after it, started when the
-        stream would have `rests[before]` evaluations ($B_0$): its variance is that of $B_1$ =
-        `rests[2]` evaluations, its time $T + c_k B_1$ with $T$ the stage's (its training's
-        rounds, QMC's nets through the grid, the search for modes), so that against a
-        candidate that streams $B_0$ at once it pays $(B_0 / B_1)(1 + T / (c_k B_1))$."""
-        costs = self.costs(auto)
-        qmc = REPLICAS * self.per_replica
-        stage_time = (self.rounds * self.round_size * costs[ADAPTIVE] + qmc * costs[GRID_QMC]
-                      + self.search_n * costs[IMPORTANCE])
-        b0, b1 = self.rests[before], self.rests[2]
-        return b0 / b1 * (1 + stage_time / (costs * b1))
-
     def growth(self, per_replica: int, rest: int) -> float:
         """How much larger the stream's nets on `rest` are than the pilot's (capped)."""
         return min(final_net(rest) / per_replica, MAX_NET_GROWTH)
@@ -193,15 +158,15 @@ class _Look(eqx.Module):
     go_on: jax.Array  # whether the grid's stage is worth running
 
 
-@partial(jax.jit, static_argnames="z")
-def _look(y, bins, growths, costs, prices, *, z):
+@partial(jax.jit, static_argnames=("z", "costs"))
+def _look(y, bins, growths, price, *, z, costs):
     """QMC's pilot nets measured (QMC projected `growths`-fold, to the stream's nets after
-    this stage and after the grid's), and whether the grid's stage is worth running at its
-    `prices` (`Schedule.prices`)."""
+    this stage and after the grid's), and whether the grid's stage is worth running (its
+    training costing `price` of what is left after it)."""
     both = nets_figures(y, bins, growths, z)
     nets, after = (eqx.tree_at(lambda n: n.qmc, both, jax.tree.map(lambda a: a[k], both.qmc))
                    for k in (0, 1))
-    go_on = grid_can_win(nets, costs, prices, z)
+    go_on = grid_can_win(nets, np.asarray(costs, y.dtype), price, z)
     return _Look(nets, after.qmc, pooled_any(go_on))
 
 
@@ -228,8 +193,8 @@ class _MixtureStage(eqx.Module):
     draws: Any
 
 
-@jax.jit
-def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, stages, search_n, rests, costs):
+@partial(jax.jit, static_argnames="costs")
+def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, stages, search_n, rests, *, costs):
     """The candidates' figures, the winner and the pilot's record, from what ran: `(Pilot,
     the evaluations left for the stream: `rests`' after the last stage that ran)`. `grid`,
     `mixture`: the stages' results (`None` where they did not run eagerly). The sizes
@@ -247,6 +212,7 @@ def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, stages, search_n, 
     if mixture is not None:
         figures.append(_where(mixture_on, mixture.figure, unmeasured(dtype)))
     figures = _stack(figures + [unmeasured(dtype)] * (len(CANDIDATES) - len(figures)))
+    costs = np.asarray(costs, dtype)
     winner = choose(figures, costs, (jnp.arange(len(CANDIDATES)) == 0) & look.nets.blind)
     ran = jnp.stack([jnp.asarray(True), look.go_on, jnp.asarray(grid_on),
                      jnp.asarray(mixture_on)])
@@ -259,36 +225,36 @@ def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, stages, search_n, 
     return pilot, rest.astype(jnp.int32)
 
 
-@jax.jit
-def _mixture_on(look: _Look, grid: _GridStage, costs):
+@partial(jax.jit, static_argnames="costs")
+def _mixture_on(look: _Look, grid: _GridStage, *, costs):
     """Whether the mixture's stage is worth running, after the grid's: its outlook could win,
     or the grid misses a mode (the mixture is then the one candidate seeded with it)."""
     dtype = look.nets.plain.value.dtype
     measured = _stack([look.qmc_after_grid, grid.adaptive, grid.through, unmeasured(dtype)])
+    costs = np.asarray(costs, dtype)
     return pooled_any(mixture_can_win(grid.seeded_outlook, costs, measured) | grid.misses)
 
 
 def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
     f, lo, hi, batched, d = problem.f, problem.lo, problem.hi, problem.batched, problem.d
     s = schedule(auto, sizing, budget, d)
-    z = auto.confidence
-    dtype = np.dtype(lo.dtype)
-    costs = np.asarray(s.costs(auto), dtype)
+    z, costs = auto.confidence, auto.costs
     stream_key, qmc_key, train_key, grid_key, mixture_key = _split(key)
     log2_early = s.early.bit_length() - 1
+    dtype = np.dtype(lo.dtype)
     after_grid = s.growth(s.per_replica, s.rests[2])
 
     # 1. The early look; 2. the rest of the nets.
     early = net_values(qmc_key, lo, hi, f, batched, 0, 1, log2_early)
     first = _look(*early, np.asarray([s.growth(s.early, s.rests[0]),
                                       s.growth(s.early, s.rests[2])], dtype),
-                  costs, np.asarray(s.prices(auto, 0), dtype), z=z)
+                  np.asarray(s.rests[0] / s.rests[2], dtype), z=z, costs=costs)
 
     def whole_nets():
         rest = net_values(qmc_key, lo, hi, f, batched, 1, 3, log2_early)
         return _look(*_joined(early, rest), np.asarray([s.growth(s.per_replica, s.rests[1]),
                                                         after_grid], dtype),
-                     costs, np.asarray(s.prices(auto, 1), dtype), z=z)
+                     np.asarray(s.rests[1] / s.rests[2], dtype), z=z, costs=costs)
 
     look = latest(first.go_on, stage(first.go_on, whole_nets), first)
     grid_on = first.go_on & look.go_on if look is not first else False
@@ -314,7 +280,7 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
     # 4. The mixture.
     mixture, mixture_on = None, False
     if grid is not None and s.mixture_n:
-        mixture_on = grid_on & _mixture_on(look, grid, costs)
+        mixture_on = grid_on & _mixture_on(look, grid, costs=costs)
 
         def mixture_stage():
             return _MixtureStage(*mixture_pilot(mixture_key, grid.seeded, grid.samples,
@@ -325,7 +291,7 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
 
     pilot, rest = _verdict(look, grid_on, grid, mixture_on, mixture,
                            np.asarray(s.stages, np.int32), np.int32(s.search_n),
-                           np.asarray(s.rests, np.int32), costs)
+                           np.asarray(s.rests, np.int32), costs=costs)
 
     # The winner streams what its stage left (QMC: one program for every stage's rest).
     done = int(np.sum(s.stages))

@@ -31,9 +31,6 @@ from ._figures import Figure, blind, iid_figure, relative_variance
 REPLICAS = 8  # scrambled nets in the pilot (as SciPy's `qmc_quad`): 7 degrees of freedom
 MAX_NET_GROWTH = 32  # most the projection lets QMC's nets grow beyond the pilot's
 MAX_QMC_RATE = 2.0  # scrambled nets on smooth integrands: variance n^-3 (Owen 1997)
-# Through a grid's piecewise-linear map f(G(u)) G'(u) jumps at the bins' edges, whatever f's
-# smoothness: a jump in a net's cell leaves an error of order 1/n, variance n^-2 (rate 1).
-MAPPED_QMC_RATE = 1.0
 # The pilot's points' bins on each axis, in which the product outlook fits its density.
 OUTLOOK_BINS = 16
 OUTLOOK_FLOOR = 1e-3  # the outlook density's least value on a bin, relative to its mean
@@ -47,9 +44,6 @@ class NetFigures(eqx.Module):
     heavy: jax.Array  # the values may have a power-law tail (Pareto k-hat > 1/4)
     blind: jax.Array  # they saw nothing, or too few effective points
     outlook: Figure  # a product density's, fitted and read on halves of the nets
-    # How much QMC's rate beyond MAPPED_QMC_RATE flatters its projection to the last growth,
-    # a gain that QMC through a grid's map is not promised: growth^(rate - 1), at least 1.
-    mapped_penalty: jax.Array
 
 
 def _net_units(key, d, dtype, first, blocks, log2_block):
@@ -108,10 +102,10 @@ def _mapped_points(key, density, *, log2_size):
     return (x if density.event_ndim else x[:, 0]), jnp.exp(log_q)
 
 
-def _replica_figures(y, growths, max_rate=MAX_QMC_RATE):
+def _replica_figures(y, growths):
     """The logarithm of QMC's relative variance per evaluation from the means of replicas `y`
     `(R, m, ...)`, projected `growths`-fold beyond nets of `m` points (one per growth) at the
-    rate fitted across nets of `m/8 .. m` points (at most `max_rate`)."""
+    rate fitted across nets of `m/8 .. m` points."""
     replicas, per_replica = y.shape[:2]
     sizes = [per_replica >> k for k in (3, 2, 1, 0)]
 
@@ -123,7 +117,7 @@ def _replica_figures(y, growths, max_rate=MAX_QMC_RATE):
     by_size = jnp.log2(jnp.stack([at(m) for m in sizes]))
     doublings = jnp.arange(len(sizes), dtype=by_size.dtype) - (len(sizes) - 1) / 2
     rate = -jnp.sum(doublings * by_size) / jnp.sum(doublings**2)
-    rate = jnp.clip(jnp.where(jnp.isfinite(rate), rate, 0.0), 0.0, max_rate)
+    rate = jnp.clip(jnp.where(jnp.isfinite(rate), rate, 0.0), 0.0, MAX_QMC_RATE)
     return by_size[-1] * math.log(2) - rate * jnp.log(jnp.asarray(growths, by_size.dtype))
 
 
@@ -145,18 +139,14 @@ def qmc_figure(y, growths) -> Figure:
 
 def nets_figures(y, bins, growth, z) -> NetFigures:
     """`NetFigures` of the pilot's values `y` `(R, m, ...)` in `bins` (`net_values`), QMC's
-    projected `growth`-fold (a tuple: stacked, one per growth; `mapped_penalty` at the last). Under a power-law tail evident
+    projected `growth`-fold (a tuple: stacked, one per growth). Under a power-law tail evident
     at `z` standard errors QMC is credited with plain MC's variance (which its stream reports
     there, `bounded_variance`), as is QMC through a density of the values it streams."""
     replicas = y.shape[0]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
     plain, suspected, evident = iid_figure(flat, z)
     qmc = credited(qmc_figure(y, growth), plain, evident)
-    last = jnp.reshape(jnp.asarray(growth, y.dtype), (-1,))[-1]
-    penalty = jnp.exp(_replica_figures(y, last, MAPPED_QMC_RATE) - _replica_figures(y, last))
-    penalty = jnp.where(jnp.isfinite(penalty), jnp.maximum(penalty, 1.0), 1.0)
-    return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y),
-                      penalty)
+    return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y))
 
 
 def credited(qmc: Figure, plain: Figure, heavy) -> Figure:

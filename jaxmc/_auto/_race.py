@@ -9,9 +9,9 @@ the winner minimises $c_k v_k$. Each figure is an estimate with an uncertainty
 bound.
 
 A stage (the grid's training and what is measured on it) costs evaluations that its
-candidates' streams then lack, and time: a candidate measured after it streams $B_1$
-evaluations where the leader could stream $B_0 > B_1$ now, at time $T + c_k B_1$ with $T$
-the stage's, so it wins only if $c_k v_k (B_0/B_1)(1 + T/(c_k B_1)) < c_L v_L$. Before the stage its candidates have only an outlook (what a density fitted to the
+candidates' streams then lack: a candidate measured after it streams $B_1$ evaluations
+where the leader could stream $B_0 > B_1$ now, so it wins only if $c_k v_k B_0/B_1 < c_L
+v_L$. Before the stage its candidates have only an outlook (what a density fitted to the
 pilot's values does on values it was not fitted to); the stage runs unless every one of
 them is hopeless: its optimistic bound, at that price, above the leader's pessimistic one.
 
@@ -35,25 +35,21 @@ QMC, ADAPTIVE, GRID_QMC, IMPORTANCE = range(len(CANDIDATES))
 
 
 def grid_can_win(nets: NetFigures, costs, price, z) -> jax.Array:
-    r"""Whether a candidate that needs the grid can still beat QMC, from QMC's pilot `nets`,
-    the grid's stage costing candidate $k$ a factor `price[k]` (a scalar: all alike) on its
-    figure of merit: its evaluations and time (`Schedule.prices`).
+    r"""Whether a candidate that needs the grid (its training, `price` = $B_0/B_1$) can still
+    beat QMC, from QMC's pilot `nets`.
 
     The grid's outlook $v_O$ is a product density's, as VEGAS's grid converges to
     (`product_outlook`). The grid alone would cost $c_A v_O$ against QMC's $c_Q v_Q$. QMC
     through the grid gains over QMC what the grid's density gains over uniform sampling,
     $v_O/v_P$ ($v_P$ plain Monte Carlo's on the same points), if QMC's gain on $f$ carries
-    over to $f/q$ up to a rate of 1 (`mapped_penalty`: the map's bin edges make $f/q$ jump):
-    it costs $c_G v_O v_Q/v_P$ times that penalty against $c_Q v_Q$. A
+    over to $f/q$: it costs $c_G v_O v_Q/v_P$ against $c_Q v_Q$, whatever QMC's own figure. A
     mixture is seeded from the grid: it needs the same stage. Where QMC's values saw nothing,
     or have a power-law tail (their outlook's variance has no finite estimate), or QMC's own
     figure is no number, the grid can always win.
     """
-    price = jnp.broadcast_to(price, (len(CANDIDATES),))
-    low = nets.outlook.low(z)
-    adaptive = costs[ADAPTIVE] * price[ADAPTIVE] * low < costs[QMC] * nets.qmc.high(z)
-    through_grid = (costs[GRID_QMC] * price[GRID_QMC] * low * nets.mapped_penalty
-                    < costs[QMC] * nets.plain.high(z))
+    low = nets.outlook.low(z) * price
+    adaptive = costs[ADAPTIVE] * low < costs[QMC] * nets.qmc.high(z)
+    through_grid = costs[GRID_QMC] * low < costs[QMC] * nets.plain.high(z)
     unread = nets.blind | nets.heavy | ~jnp.isfinite(nets.qmc.value)
     return adaptive | through_grid | unread
 
