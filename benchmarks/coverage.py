@@ -375,6 +375,11 @@ def _plot(ctx: Context, records: list[dict], methods: list[str], name: str) -> s
 # ----------------------------------------------------------------------------
 
 
+def _mean_flagged(records: list[dict]) -> float:
+    """The share of runs flagged over `records` (cells of equal seeds); NaN for none."""
+    return float(np.mean([r["flagged"] for r in records])) if records else math.nan
+
+
 def run(ctx: Context) -> Result:
     with jax.enable_x64(True):
         return measure(ctx, cases(), list(METHODS), SEEDS)
@@ -405,6 +410,10 @@ def measure(ctx: Context, chosen: list[Case], methods: list[str], seeds: int) ->
         r for r in records
         if PASS_BAND[0] <= r["coverage_2sigma"] <= PASS_BAND[1] and r["flagged"] > FLAGGED_MAJORITY
     ]
+    # The false-alarm rate: the share of runs flagged where the error bar was calibrated.
+    calibrated = [r for r in records if PASS_BAND[0] <= r["coverage_2sigma"] <= PASS_BAND[1]]
+    false_alarms = {m: _mean_flagged([r for r in calibrated if r["method"] == m]) for m in methods}
+    false_alarms["all"] = _mean_flagged(calibrated)
     setups = [f"{r['method']} on {r['integrand']}: {m}" for r in records for m in r["setup_warnings"]]
     notes = (
         f"{seeds} seeds per cell, float64; n evaluations per run (`stratified`: the largest "
@@ -425,6 +434,10 @@ def measure(ctx: Context, chosen: list[Case], methods: list[str], seeds: int) ->
         f"{len(records) - len(failing)} of {len(records)} cells pass"
         + (": every cell's error bar is right or flagged." if not failing else
            "; failing: " + _cell_list(failing) + ".")
+        + f"\n\nFalse alarms (runs flagged in the {len(calibrated)} calibrated cells): "
+        + f"{100 * false_alarms['all']:.1f}% overall; "
+        + ", ".join(f"{m} {100 * v:.1f}%" for m, v in false_alarms.items()
+                    if m != "all" and not math.isnan(v)) + "."
         + f"\n\nCalibrated (cov 2σ in [{PASS_BAND[0]}, {PASS_BAND[1]}]) yet flagged in most runs: "
         + (_cell_list(over_flagged) if over_flagged else "none") + "."
         + ("\n\nWarnings while setting methods up (not from the measured runs):\n\n"
@@ -440,6 +453,7 @@ def measure(ctx: Context, chosen: list[Case], methods: list[str], seeds: int) ->
         "seeds": seeds, "n": N, "levels": list(LEVELS), "pass_band": list(PASS_BAND),
         "flagged_majority": FLAGGED_MAJORITY, "methods": methods,
         "failing": [[r["method"], r["integrand"]] for r in failing],
-        "over_flagged": [[r["method"], r["integrand"]] for r in over_flagged], "cells": records,
+        "over_flagged": [[r["method"], r["integrand"]] for r in over_flagged],
+        "false_alarms": false_alarms, "cells": records,
     }
     return Result(markdown=markdown, data=data, plots=[plot] if plot else [])
