@@ -37,8 +37,9 @@ class Context(eqx.Module):
     """What every block of a stream reads: its key, the frozen density (a proposal, a map,
     or a VEGAS+ grid and allocation), the box, the evaluations it may make (`limit`: an
     array, so that the programs reading it serve every budget); for QMC its replicas'
-    scrambles, and for a budget given when it runs, its replicas, their blocks each and the
-    blocks in all."""
+    scrambles, on a fixed budget each replica's blocks in its net and beyond it, and for a
+    budget given when it runs its replicas (`active`), their blocks each and the blocks in
+    all."""
 
     key: jax.Array
     frozen: object
@@ -47,10 +48,18 @@ class Context(eqx.Module):
     limit: jax.Array
     scrambles: object = None
     active: jax.Array | None = None
-    per_replica: jax.Array | None = None
-    nblocks: jax.Array | None = None
     net_blocks: jax.Array | None = None
     extra: jax.Array | None = None
+
+    @property
+    def per_replica(self) -> jax.Array | None:
+        """Blocks each replica walks, for a budget given when the stream runs."""
+        return None if self.active is None else self.net_blocks + self.extra
+
+    @property
+    def nblocks(self) -> jax.Array | None:
+        """Blocks in all, for a budget given when the stream runs."""
+        return None if self.active is None else self.active * self.per_replica
 
 
 def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
@@ -58,7 +67,7 @@ def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
     `sizes.dynamic` QMC in nets that `min_replicas`, default `sizes.min_replicas`, fit in;
     both may be traced."""
     d = 1 if lo.ndim == 0 else lo.shape[0]
-    scrambles = active = per_replica = nblocks = net_blocks = extra = None
+    scrambles = active = net_blocks = extra = None
     limit = jnp.asarray(sizes.budget if budget is None else budget, jnp.int32)
     if sizes.method == "qmc":
         scrambles = jax.vmap(lambda k: sobol_scramble(k, d))(jax.random.split(key, sizes.replicas))
@@ -71,14 +80,11 @@ def context(key, frozen, lo, hi, budget, min_replicas, *, sizes) -> Context:
         net = jnp.left_shift(1, 31 - jax.lax.clz(budget // fewest))
         active, net_blocks = budget // net, net // sizes.block
         extra = extra_blocks(budget, active, net, sizes.block)
-        per_replica = net_blocks + extra
-        nblocks = active * per_replica
-        limit = nblocks * sizes.block
+        limit = active * (net_blocks + extra) * sizes.block
     elif sizes.net_blocks:
         net_blocks = jnp.asarray(sizes.net_blocks, jnp.int32)
         extra = limit // (sizes.block * sizes.replicas) - net_blocks
-    return Context(key, frozen, lo, hi, limit, scrambles, active, per_replica, nblocks,
-                   net_blocks, extra)
+    return Context(key, frozen, lo, hi, limit, scrambles, active, net_blocks, extra)
 
 
 def block_weight(position, net_blocks, extra):
