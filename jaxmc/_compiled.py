@@ -21,7 +21,6 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 
 
 # A program with the integrand it evaluates takes ~150-300 memory mappings on a CPU (one
@@ -50,50 +49,59 @@ def per_shape(fn: Callable) -> Callable:
 
 
 def _bounded(fn: Callable, programs: collections.OrderedDict, size: Callable[[], int]):
+    # One flatten per call, not `equinox.partition`'s tree maps: these programs run several
+    # times per eager `integrate` call, where the split is a visible share of the time.
     @functools.wraps(fn)
     def compiled(*args: Any, **kwargs: Any) -> Any:
-        dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
-        leaves, treedef = jax.tree.flatten(static)
-        key = (fn, treedef, tuple(leaves))
+        leaves, treedef = jax.tree.flatten((args, kwargs))
+        arrays = [a for a in leaves if eqx.is_array(a)]
+        # (Arrays' slots hold None, which no leaf is: the key fixes which leaves are arrays.)
+        static = tuple(None if eqx.is_array(a) else a for a in leaves)
+        key = (fn, treedef, static)
         try:
             program = programs.pop(key, None)
         except TypeError:  # an unhashable static argument: compiled for this call alone
-            return _compile(fn, static)(dynamic)
+            return _compile(fn, treedef, static)(arrays)
         if program is None:
-            program = _compile(fn, static)
+            program = _compile(fn, treedef, static)
         programs[key] = program  # (the most recent last)
         while len(programs) > size():
             programs.popitem(last=False)
-        return program(dynamic)
+        return program(arrays)
 
     return compiled
 
 
-def _compile(fn: Callable, static: Any) -> Callable:
-    """`fn` with its static part bound, as one `jax.jit` program. As `equinox.filter_jit`'s,
-    its outputs that are not arrays (Python numbers among them) come back as they are, not
-    as arrays: they are kept from the trace, one per signature of the traced arguments."""
+def _compile(fn: Callable, treedef, static: tuple) -> Callable:
+    """`fn` with its static leaves bound (the arrays' slots of `static` are None), as one
+    `jax.jit` program of its array leaves. As `equinox.filter_jit`'s, its outputs that are
+    not arrays (Python numbers among them) come back as they are, not as arrays: they are
+    kept from the trace, one per signature of the traced arguments."""
     outputs: dict[Hashable, Any] = {}
 
-    def run(dynamic):
-        args, kwargs = eqx.combine(dynamic, static)
-        arrays, rest = eqx.partition(fn(*args, **kwargs), eqx.is_array)
-        outputs[_signature(dynamic)] = rest
-        return arrays
+    def run(arrays):
+        supply = iter(arrays)
+        args, kwargs = jax.tree.unflatten(
+            treedef, [next(supply) if a is None else a for a in static])
+        leaves, out_treedef = jax.tree.flatten(fn(*args, **kwargs))
+        outputs[_signature(arrays)] = (out_treedef, tuple(
+            None if eqx.is_array(a) else a for a in leaves))
+        return [a for a in leaves if eqx.is_array(a)]
 
     run.__name__ = run.__qualname__ = fn.__name__  # (what JAX's logs call the program)
     program = jax.jit(run)
 
-    def call(dynamic):
-        arrays = program(dynamic)
-        return eqx.combine(arrays, outputs[_signature(dynamic)])
+    def call(arrays):
+        supply = iter(program(arrays))  # (traced on first sight of a signature)
+        out_treedef, out_static = outputs[_signature(arrays)]
+        return jax.tree.unflatten(out_treedef, [next(supply) if a is None else a
+                                                for a in out_static])
 
     return call
 
 
-def _signature(dynamic) -> Hashable:
-    leaves, treedef = jax.tree.flatten(dynamic)
-    return treedef, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)
+def _signature(arrays: list) -> Hashable:
+    return tuple((a.shape, a.dtype, getattr(a, "weak_type", False)) for a in arrays)
 
 
 # Memory mappings. On Linux every compiled CPU program holds some (its code and data

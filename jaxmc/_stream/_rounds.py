@@ -29,10 +29,12 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import is_concrete
 from .._diagnostics import pareto_k, tail_of
@@ -208,11 +210,11 @@ def vegas_rounds(rule, key, state, rounds, *, f, batched, fixed=False, progress_
     one compiled for each integrand) and the update (`VegasPlus.update`)."""
     size = state.draw.u.shape[0]
     if all(is_concrete(a) for a in jax.tree.leaves((key, state, f))):
-        parts, samples = [], None
+        parts, samples, run = [], None, _Round.of(rule)
         for i in range(rounds):
-            x, points = _propose(rule, state)
-            state, est, samples = _update(rule, key, jnp.int32(i), state,
-                                          values(x, f=f, batched=batched), points, fixed=fixed)
+            x, points = run.propose(state)
+            state, est, samples = run.update(key, i, state, values(x, f=f, batched=batched),
+                                             points, fixed=fixed)
             parts.append(est)
             if progress_total is not None:
                 report(est.mean, est.stderr, done + (i + 1) * size, total=progress_total,
@@ -244,15 +246,37 @@ def _updated(rule, key, i, state, fx, points, fixed):
     return state, Estimate(**estimate_fields(est)), samples
 
 
-# (As `filter_jit` holds them, the rule's Python numbers are constants, as when traced.)
-@eqx.filter_jit
-def _propose(rule, state):
-    return rule.propose(state)
+class _Round(NamedTuple):
+    """A round's two programs run from Python for `rule`: its points (`VegasPlus.propose`)
+    and its update (`VegasPlus.update`). The rule's numbers are static, constants as when
+    traced, and its arrays (a traced `coarse`) arguments: split once, not per round."""
+
+    numbers: VegasPlus
+    arrays: VegasPlus
+
+    @classmethod
+    def of(cls, rule: VegasPlus) -> _Round:
+        arrays, numbers = eqx.partition(rule, eqx.is_array)
+        return cls(numbers, arrays)
+
+    def propose(self, state):
+        return _compiled_propose(self.numbers, self.arrays, state)
+
+    def update(self, key, i, state, fx, points, *, fixed):
+        return _compiled_update(self.numbers, self.arrays, key, np.int32(i), state, fx, points,
+                                fixed)
 
 
-@eqx.filter_jit
-def _update(rule, key, i, state, fx, points, *, fixed):
-    return _updated(rule, key, i, state, fx, points, fixed)
+# (`jax.jit` with the rule static dispatches a round in half the time `equinox.filter_jit`
+# takes to split every argument on every call.)
+@functools.partial(jax.jit, static_argnums=0)
+def _compiled_propose(numbers, arrays, state):
+    return eqx.combine(arrays, numbers).propose(state)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 7))
+def _compiled_update(numbers, arrays, key, i, state, fx, points, fixed):
+    return _updated(eqx.combine(arrays, numbers), key, i, state, fx, points, fixed)
 
 
 @jax.jit
@@ -352,12 +376,12 @@ def refine(key, state, rtol, atol, *, f, batched, rounds, tolerant, progress=Fal
         return _averaged(parts, rounds, last), state
     if all(is_concrete(a) for a in jax.tree.leaves((key, state, f, rtol, atol))):
         # Round by round from Python, as the traced loop below runs them.
-        parts = None
+        parts, run = None, _Round.of(rule)
         for i in range(rounds):
-            x, points = _propose(rule, state)
-            state, est, last = _update(rule, key, jnp.int32(i), state,
-                                       values(x, f=f, batched=batched), points, fixed=True)
-            parts, met = _recorded(parts, est, jnp.int32(i), rtol, atol, rounds=rounds)
+            x, points = run.propose(state)
+            state, est, last = run.update(key, i, state, values(x, f=f, batched=batched),
+                                          points, fixed=True)
+            parts, met = _recorded(parts, est, np.int32(i), rtol, atol, rounds=rounds)
             if progress:
                 report(est.mean, est.stderr, (i + 1) * n, total=total, last=i == rounds - 1)
             if bool(met):
