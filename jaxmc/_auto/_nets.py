@@ -181,9 +181,10 @@ def product_outlook(bins, y) -> Figure:
     tiny = jnp.finfo(square.dtype).tiny
     least = jnp.min(jnp.where(square > 0, square, jnp.inf))
     z = 0.5 * jnp.log(jnp.maximum(jnp.where(square > 0, square, least), tiny))
-    # Each point's bin on each axis, one-hot `(n, d, bins)`: bins' sums and densities at the
-    # points are then products with it (where a scatter and a gather run serially on a CPU).
-    one_hot = jax.nn.one_hot(jnp.reshape(bins, (-1, d)), OUTLOOK_BINS, dtype=z.dtype)
+    # Each point's bin on each axis as a slot of all axes' bins, `(n, d)` in `[0, d * bins)`:
+    # bins' sums are one scatter, densities at the points one gather. (Products with a
+    # one-hot `(n, d, bins)` array cost more: inside a larger program it was materialised.)
+    slots = jnp.reshape(bins, (-1, d)).astype(jnp.int32) + OUTLOOK_BINS * jnp.arange(d)
     split = y.shape[0] // 2 * y.shape[1]
     halves = (slice(0, split), slice(split, None))
     mean_square = jnp.maximum(jnp.sum(jnp.mean(values, axis=0) ** 2), tiny)
@@ -193,8 +194,11 @@ def product_outlook(bins, y) -> Figure:
 
     def log_densities(fit):
         """`(configurations, d, OUTLOOK_BINS)` log densities fitted on the points `fit`."""
-        parts = jnp.stack([z[fit], square[fit], jnp.ones_like(z[fit])])
-        sums = jnp.einsum("kn,ndb->kdb", parts, one_hot[fit])
+        parts = jnp.stack([z[fit], square[fit], jnp.ones_like(z[fit])], axis=-1)  # (n, k)
+        on_axes = jnp.broadcast_to(parts[:, None], slots[fit].shape + parts.shape[-1:])
+        sums = jax.ops.segment_sum(jnp.reshape(on_axes, (-1, parts.shape[-1])),
+                                   jnp.reshape(slots[fit], (-1,)), d * OUTLOOK_BINS)
+        sums = jnp.reshape(sums.T, (-1, d, OUTLOOK_BINS))
         pooled = jnp.einsum("kdb,cbe->ckde", sums, jnp.asarray(pooling, z.dtype))
         seen = pooled[:, 2] > 0
         mean_z, mean_square_bin = (pooled[:, k] / jnp.maximum(pooled[:, 2], 1) for k in (0, 1))
@@ -211,7 +215,8 @@ def product_outlook(bins, y) -> Figure:
 
     def read(fit, on):
         """Each configuration's mean of $|f|^2/q$ on the points `on`, and its variance."""
-        at = jnp.einsum("ndb,cdb->cn", one_hot[on], log_densities(fit))  # log q at the points
+        log_q = jnp.reshape(log_densities(fit), (-1, d * OUTLOOK_BINS))
+        at = jnp.sum(log_q[:, slots[on]], axis=-1)  # log q at the points, `(c, n)`
         # (f = 0 adds 0 even where 1/q overflows, never NaN.)
         w = jnp.where(square[on] > 0, square[on] * jnp.exp(-at), 0)
         return jnp.mean(w, axis=1), jnp.var(w, axis=1) / w.shape[1]

@@ -174,7 +174,7 @@ def stream(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *, f
 
     if not tolerant:
         whole = sharded(sizes.per_step)
-        if ctx.nblocks is not None:  # (the steps past the budget's blocks are skipped)
+        if ctx.nblocks is not None and sizes.steps > 1:  # (steps past the budget's: skipped)
             run, empty = whole, (start, zero, zero)
             whole = lambda t: jax.lax.cond(t * sizes.per_step < ctx.nblocks, run,  # noqa: E731
                                            lambda _: empty, t)
@@ -238,7 +238,7 @@ def stepwise(key, frozen, lo, hi, rtol, atol, budget=None, min_replicas=None, *,
 
     if not tolerant:
         steps = sizes.steps
-        if ctx.nblocks is not None:  # (the steps past the budget's blocks are skipped)
+        if ctx.nblocks is not None and sizes.steps > 1:  # (steps past the budget's: skipped)
             steps = min(steps, -(-int(ctx.nblocks) // sizes.per_step))
         for t in range(steps):
             carry = step(carry, t, sizes.per_step)
