@@ -322,6 +322,37 @@ def test_a_plan_serves_a_family_of_integrals_under_jit_and_vmap():
     assert np.all(np.abs(np.asarray(est.mean) - exact) < 5 * np.asarray(est.stderr))
 
 
+@pytest.mark.filterwarnings("ignore::jaxmc.ReliabilityWarning")  # (the values, not the flags)
+@pytest.mark.parametrize("name", ["grid_qmc", "adaptive"])
+def test_a_plan_under_vmap_gives_what_a_loop_gives_and_so_do_its_derivatives(name):
+    # Under vmap a plan's runs go element after element: the batch's estimates are the loop's,
+    # its parameter given in `args` or closed over, and vmap of grad is the loop's grads.
+    lo, hi = box(2)
+
+    def f(x, c):
+        return jnp.exp(-jnp.sum((x - c) ** 2) / (2 * 0.08**2))
+
+    plan = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=2**15, args=0.5,
+                           method=getattr(jaxmc.methods, "GridQMC" if name == "grid_qmc"
+                                          else "Adaptive")()).plan
+    key, centres = jax.random.key(1), jnp.asarray([0.45, 0.5, 0.55])
+
+    def by_args(c):
+        return jaxmc.integrate(key, f, lo, hi, n=2**14, args=c, method=plan).mean
+
+    def closed_over(c):
+        return jaxmc.integrate(key, lambda x: f(x, c), lo, hi, n=2**14, method=plan).mean
+
+    loop = np.asarray([by_args(c) for c in centres])
+    for batch in (jax.vmap(by_args), jax.jit(jax.vmap(by_args)), jax.vmap(closed_over)):
+        np.testing.assert_allclose(np.asarray(batch(centres)), loop, rtol=1e-12)
+    grads = np.asarray([jax.grad(by_args)(c) for c in centres])
+    np.testing.assert_allclose(np.asarray(jax.vmap(jax.grad(by_args))(centres)), grads,
+                               rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(jax.grad(lambda c: jnp.sum(jax.vmap(by_args)(c)))(
+        centres)), grads, rtol=1e-10)
+
+
 def test_a_plan_survives_serialisation(tmp_path):
     lo, hi = box(3)
     f = peak(3, s=0.05)

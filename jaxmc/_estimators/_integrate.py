@@ -46,6 +46,7 @@ from .._methods._grid_qmc import GridQMC
 from .._methods._importance import Importance
 from .._methods._mapped import Mapped
 from .._methods._method import AbstractMethod, Problem
+from .._methods._sequential import sequential_run
 from .._stats import Estimate, ReliabilityWarning, estimate_fields
 from .._stream._tolerance import check_tolerance, unmet_tolerance
 from .._unbounded import axis_kinds, fit_maps, map_pilot_size, probe_count
@@ -255,7 +256,11 @@ def integrate(
                 f"the infinite axes; give a budget of at least {4 * probes}, got {budget}.")
         maps = fit_maps(key_maps, f, lo, hi, kinds=kinds, pilot=pilot_size, batched=batched)
         method = Mapped(method, jax.lax.stop_gradient(maps))
-    est, plan, pilot, rounds = method.run(key, problem, budget - probes)
+    # Under `vmap` a method's stream runs element after element (`sequential_run`); `auto`'s
+    # pilot pools its choice over the batch instead (`Auto`).
+    pooled = isinstance(method.method if isinstance(method, Mapped) else method, Auto)
+    run = _run if pooled or progress else sequential_run
+    est, plan, pilot, rounds = run(method, key, problem, budget - probes)
     if probes:
         est = dataclasses.replace(est, n=est.n + probes)
     # (Values dropped on request, with nonfinite="drop", are not news.)
@@ -283,6 +288,10 @@ def integrate(
                       ReliabilityWarning, stacklevel=2)
     warn_if_unreliable(judged, "integrate")
     return est
+
+
+def _run(method: AbstractMethod, key, problem: Problem, budget: int):
+    return method.run(key, problem, budget)
 
 
 def default_chunk(d: int) -> int:
