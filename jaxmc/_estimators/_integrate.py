@@ -154,7 +154,8 @@ def integrate(
     $\mathrm{stderr} \le \max(\mathrm{atol}, \mathrm{rtol}\cdot|\mathrm{mean}|)$
     (every component of an array-valued `f`) or until `n` evaluations (`max_n` with only
     a tolerance). The result is a function of `(key, n)` alone, the same eagerly and
-    under `jit`.
+    under `jit`. Under `vmap`, `"auto"` pools its pilot's choice over the batch; any other
+    method (a plan among them) streams the members one after another, as a loop would.
 
     **Arguments:**
 
