@@ -323,8 +323,9 @@ def test_a_plan_serves_a_family_of_integrals_under_jit_and_vmap():
 
 
 @pytest.mark.filterwarnings("ignore::jaxmc.ReliabilityWarning")  # (the values, not the flags)
-@pytest.mark.parametrize("name", ["grid_qmc", "adaptive"])
-def test_a_plan_under_vmap_gives_what_a_loop_gives_and_so_do_its_derivatives(name):
+@pytest.mark.parametrize("method", [jaxmc.methods.GridQMC(), jaxmc.methods.Adaptive()],
+                         ids=["grid_qmc", "adaptive"])
+def test_a_plan_under_vmap_gives_what_a_loop_gives_and_so_do_its_derivatives(method):
     # Under vmap a plan's runs go element after element: the batch's estimates are the loop's,
     # its parameter given in `args` or closed over, and vmap of grad is the loop's grads.
     lo, hi = box(2)
@@ -332,9 +333,7 @@ def test_a_plan_under_vmap_gives_what_a_loop_gives_and_so_do_its_derivatives(nam
     def f(x, c):
         return jnp.exp(-jnp.sum((x - c) ** 2) / (2 * 0.08**2))
 
-    plan = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=2**15, args=0.5,
-                           method=getattr(jaxmc.methods, "GridQMC" if name == "grid_qmc"
-                                          else "Adaptive")()).plan
+    plan = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=2**15, args=0.5, method=method).plan
     key, centres = jax.random.key(1), jnp.asarray([0.45, 0.5, 0.55])
 
     def by_args(c):

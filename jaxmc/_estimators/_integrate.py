@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import equinox as eqx
@@ -59,9 +60,8 @@ ALIASES: dict[str, AbstractMethod] = {
 }
 METHODS = tuple(ALIASES)
 CHUNK = 1 << 18  # default samples per loop step (bounds memory)...
-# ...and at most this many coordinates (a step's points, 8 MB in float64): in many dimensions
-# a step's arrays otherwise leave the cache (measured on a CPU, QMC in 32-D at 1e6: 1.9x
-# less time eagerly and 1.3x under `jit` in steps of 2^15 points than of 2^18).
+# ...and at most this many coordinates (a step's points, 8 MB in float64): in many
+# dimensions a step's arrays otherwise leave the cache.
 CHUNK_COORDINATES = 1 << 20
 # ...for the stream from a mixture, whose density holds (points, components, d) arrays: in
 # smaller steps they stay in cache (measured on a CPU at 1e6: 25-45% less time on a 4-D and
@@ -260,8 +260,8 @@ def integrate(
     # Under `vmap` a method's stream runs element after element (`sequential_run`); `auto`'s
     # pilot pools its choice over the batch instead (`Auto`).
     pooled = isinstance(method.method if isinstance(method, Mapped) else method, Auto)
-    run = _run if pooled or progress else sequential_run
-    est, plan, pilot, rounds = run(method, key, problem, budget - probes)
+    run = method.run if pooled or progress else partial(sequential_run, method)
+    est, plan, pilot, rounds = run(key, problem, budget - probes)
     if probes:
         est = dataclasses.replace(est, n=est.n + probes)
     # (Values dropped on request, with nonfinite="drop", are not news.)
@@ -289,10 +289,6 @@ def integrate(
                       ReliabilityWarning, stacklevel=2)
     warn_if_unreliable(judged, "integrate")
     return est
-
-
-def _run(method: AbstractMethod, key, problem: Problem, budget: int):
-    return method.run(key, problem, budget)
 
 
 def default_chunk(d: int) -> int:

@@ -2,8 +2,7 @@ r"""A method's run under `vmap`: element after element, not all elements at once
 
 A stream already fills the device with its own blocks (a step of up to $2^{18}$ points);
 vectorising a batch of streams multiplies each step's arrays by the batch and takes them
-out of the cache, so that a batch of 8 cost 1.9x a loop of 8 calls on a CPU (a 4-D peak
-through a grid at $10^5$). Under `vmap`, `sequential_run` maps the run over the batch
+out of the cache. Under `vmap`, `sequential_run` maps the run over the batch
 (`jax.lax.map`); differentiated, it runs as written (a `jax.custom_jvp` whose rule is the
 run's own derivative), so `grad` and `vmap` of `grad` are unchanged.
 """

@@ -267,8 +267,7 @@ class _Round(NamedTuple):
                                 fixed)
 
 
-# (`jax.jit` with the rule static dispatches a round in half the time `equinox.filter_jit`
-# takes to split every argument on every call.)
+# (`jax.jit`, not `equinox.filter_jit`, which splits every argument on every call.)
 @functools.partial(jax.jit, static_argnums=0)
 def _compiled_propose(numbers, arrays, state):
     return eqx.combine(arrays, numbers).propose(state)
