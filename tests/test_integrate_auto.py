@@ -178,7 +178,7 @@ def _smooth_or_peak(x, peaked):
 
 
 def test_auto_pilot_never_biases_the_result():
-    # Under jit and vmap over keys (the choice pooled over them), over 120 keys the mean error
+    # Under jit and vmap over keys (a pilot and a choice for each), over 120 keys the mean error
     # is within 5 of its standard errors and the error bars are honest, on a smooth integrand
     # and on a peak. (On the peak the batch streams QMC through the grid, whose values read
     # as a power-law tail on a third of the keys: there the stream reports the i.i.d. bound,
@@ -191,7 +191,6 @@ def test_auto_pilot_never_biases_the_result():
     ))
     for peaked, exact, honest in [(False, np.sin(1.0) ** 2, "equal"), (True, 1.0, "conservative")]:
         est = over_keys(keys, jnp.asarray(peaked))
-        assert np.unique(np.asarray(est.pilot.choice)).size == 1  # one choice for the batch
         assert_unbiased_and_honest(est, exact, honest=honest)
 
 
@@ -323,17 +322,19 @@ def test_a_plan_serves_a_family_of_integrals_under_jit_and_vmap():
 
 
 @pytest.mark.filterwarnings("ignore::jaxmc.ReliabilityWarning")  # (the values, not the flags)
-@pytest.mark.parametrize("method", [jaxmc.methods.GridQMC(), jaxmc.methods.Adaptive()],
-                         ids=["grid_qmc", "adaptive"])
-def test_a_plan_under_vmap_gives_what_a_loop_gives_and_so_do_its_derivatives(method):
-    # Under vmap a plan's runs go element after element: the batch's estimates are the loop's,
-    # its parameter given in `args` or closed over, and vmap of grad is the loop's grads.
+@pytest.mark.parametrize("method", [jaxmc.methods.GridQMC(), jaxmc.methods.Adaptive(), "auto"],
+                         ids=["grid_qmc", "adaptive", "auto"])
+def test_under_vmap_a_method_gives_what_a_loop_gives_and_so_do_its_derivatives(method):
+    # Under vmap a plan's (or `auto`'s pilot and) runs go element after element: the batch's
+    # estimates are the loop's, its parameter given in `args` or closed over, and vmap of
+    # grad is the loop's grads.
     lo, hi = box(2)
 
     def f(x, c):
         return jnp.exp(-jnp.sum((x - c) ** 2) / (2 * 0.08**2))
 
-    plan = jaxmc.integrate(jax.random.key(0), f, lo, hi, n=2**15, args=0.5, method=method).plan
+    plan = method if method == "auto" else jaxmc.integrate(
+        jax.random.key(0), f, lo, hi, n=2**15, args=0.5, method=method).plan
     key, centres = jax.random.key(1), jnp.asarray([0.45, 0.5, 0.55])
 
     def by_args(c):

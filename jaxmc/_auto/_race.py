@@ -15,8 +15,10 @@ v_L$. Before the stage its candidates have only an outlook (what a density fitte
 pilot's values does on values it was not fitted to); the stage runs unless every one of
 them is hopeless: its optimistic bound, at that price, above the leader's pessimistic one.
 
-Under `vmap` (the figures batched, one per element), each decision is pooled over the
-batch, so that every element takes the same path and the stream that runs is one program:
+`integrate` runs the members of a `vmap`'s batch one after another, each with its own
+choice. Only an integrand written for a batch (`batched=True`) is vectorised, the figures
+batched, one per member. There each decision is pooled over the batch, so that every
+member takes the same path and the stream that runs is one program:
 a stage runs if any element would run it, and the winner minimises the sum of the
 logarithms of the elements' costs (their geometric mean).
 """

@@ -154,8 +154,8 @@ def integrate(
     $\mathrm{stderr} \le \max(\mathrm{atol}, \mathrm{rtol}\cdot|\mathrm{mean}|)$
     (every component of an array-valued `f`) or until `n` evaluations (`max_n` with only
     a tolerance). The result is a function of `(key, n)` alone, the same eagerly and
-    under `jit`. Under `vmap`, `"auto"` pools its pilot's choice over the batch; any other
-    method (a plan among them) streams the members one after another, as a loop would.
+    under `jit`. Under `vmap` the members run one after another, as a loop would (`"auto"`
+    with a pilot and a choice for each).
 
     **Arguments:**
 
@@ -257,10 +257,8 @@ def integrate(
                 f"the infinite axes; give a budget of at least {4 * probes}, got {budget}.")
         maps = fit_maps(key_maps, f, lo, hi, kinds=kinds, pilot=pilot_size, batched=batched)
         method = Mapped(method, jax.lax.stop_gradient(maps))
-    # Under `vmap` a method's stream runs element after element (`sequential_run`); `auto`'s
-    # pilot pools its choice over the batch instead (`Auto`).
-    pooled = isinstance(method.method if isinstance(method, Mapped) else method, Auto)
-    run = method.run if pooled or progress else partial(sequential_run, method)
+    # Under `vmap` a method (`auto`'s pilot and stream included) runs element after element.
+    run = method.run if progress else partial(sequential_run, method)
     est, plan, pilot, rounds = run(key, problem, budget - probes)
     if probes:
         est = dataclasses.replace(est, n=est.n + probes)

@@ -10,6 +10,7 @@ run's own derivative), so `grad` and `vmap` of `grad` are unchanged.
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -54,11 +55,32 @@ def sequential_run(method: AbstractMethod, key, problem: Problem, budget: int) -
     def differentiable(key, consts, arrays):
         return one_by_one(key, consts, arrays)
 
-    @differentiable.defjvp
+    @partial(differentiable.defjvp, symbolic_zeros=True)
     def _(primals, tangents):
-        return jax.jvp(run, primals, tangents)
+        # Only the perturbed inputs are differentiated: the others (the bounds, say) may pass
+        # through operations that have no derivative.
+        leaves, tree = jax.tree.flatten(primals)
+        dleaves = jax.tree.leaves(tangents, is_leaf=_is_zero)
+        live = [i for i, t in enumerate(dleaves) if not _is_zero(t)]
+
+        def perturbed(*values):
+            full = list(leaves)
+            for i, v in zip(live, values):
+                full[i] = v
+            return run(*jax.tree.unflatten(tree, full))
+
+        out, dout = jax.jvp(perturbed, [leaves[i] for i in live], [dleaves[i] for i in live])
+        return out, jax.tree.map(_instantiated, dout, out)
 
     return differentiable(key, tuple(consts), arrays)
+
+
+def _is_zero(t) -> bool:
+    return isinstance(t, jax.custom_derivatives.SymbolicZero)
+
+
+def _instantiated(t, like):
+    return jnp.zeros_like(like) if t is None else t
 
 
 def _hoisted(f, x):
