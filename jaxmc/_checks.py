@@ -96,8 +96,8 @@ def check_bounds(
     """
     host = _host_reals(lo), _host_reals(hi)
     if host[0] is not None and host[1] is not None:
-        # Plain numbers: cast in NumPy, one transfer each (eager jnp casts cost ~0.1 ms,
-        # a tenth of a small `integrate` call).
+        # Plain numbers: cast in NumPy, one transfer each (eager jnp casts are a sizeable
+        # share of a small `integrate` call).
         canonical = (jax.dtypes.canonicalize_dtype(a.dtype) for a in host)
         dtype = jnp.result_type(*canonical, float)
         with np.errstate(all="ignore"):  # a float32 overflow shows up as inf, checked below

@@ -81,16 +81,15 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     `sequential=True` is for the rounds of an adaptive method (`jaxmc.fit.adapt`
     uses it). A round's own variance moves with its estimate when $f/p$ is
     skewed (a round whose density starved a region reports both a low value and
-    a small variance), so weights $1/V_i$ favour the low rounds: on a thin shell
-    the weighted mean of 8 VEGAS+ rounds was 25% low, 3.6 of its standard errors
-    on average. Round $i$ is weighted instead by the inverse variance it was
-    expected to have from the last round before it with a measured one, $w_i =
+    a small variance), so weights $1/V_i$ favour the low rounds and bias the mean
+    low, by many of its own standard errors. Round $i$ is weighted instead by the
+    inverse variance it was expected to have from the last round before it with a
+    measured one, $w_i =
     n_i/(n_{j(i)} V_{j(i)})$ ($n$ its evaluations: $1/V_{j(i)}$ for rounds of one
     size), a figure fixed before round $i$ drew its samples, so that $\sum_i w_i (I_i - I)$ is a
     martingale with mean zero (the first measured round, with nothing before
     it, is weighted by its own variance). What bias is left comes from dividing
-    by $\sum_i w_i$: on the thin shell +1.4% (2σ coverage 0.27 → 0.81), and on
-    exponential parts whose variance is their square +3% against −81%. Then
+    by $\sum_i w_i$, and is far smaller than that of weights $1/V_i$. Then
     $V = \sum_i w_i^2 V_i / (\sum_i w_i)^2$.
 
     Parts with zero variance need a rule, since $1/V$ is infinite:
@@ -128,7 +127,7 @@ def combine(estimates: Estimate | Sequence[Estimate], *, sequential: bool = Fals
     any_exact = jnp.any(exact, axis=0)
     measured = (var > 0) & jnp.isfinite(var)
     # A part whose mean a handful of values carried has a variance that means nothing (a
-    # round that grazed a peak's far tail: 2e-141 +- 2e-141 for an integral of 1); while
+    # round that grazed a peak's far tail reports a tiny mean with a tiny error bar); while
     # any part is better measured, it gets no weight and lends none.
     # Per-part figures as arrays like the variances (hand-built parts may carry the scalar
     # defaults of the diagnostics).

@@ -3,7 +3,7 @@ r"""Counter-based random numbers in plain `jnp`: Threefry-2x32-20 and keyed perm
 `jax.random` on the CPU computes Threefry through a kernel that XLA cannot fuse
 or vectorise; written here as ordinary `uint32` array arithmetic, the same
 generator (Salmon et al. 2011, "Parallel random numbers: as easy as 1, 2, 3",
-the 20-round variant) fuses with its consumer and runs 4–6× faster on the CPU,
+the 20-round variant) fuses with its consumer and runs much faster on the CPU,
 and just as well on accelerators. It is a pure function of a key and a counter,
 so results are bit-identical under `jit`, `vmap` and any chunking.
 

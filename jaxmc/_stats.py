@@ -70,8 +70,8 @@ class Estimate(eqx.Module):
       $|c_i|$ (as in Pareto-smoothed importance sampling); the variance is
       finite only for $k < 1/2$, and above 0.7 with `ess` below n/10 (the tail
       carries the mean) the error bar cannot be trusted (`unreliable` flags it;
-      with a larger `ess`, a singular ratio in a sliver of the box, it covered
-      at the nominal rate in the coverage suite).
+      with a larger `ess`, as for a singular ratio in a sliver of the box, many
+      values share the mean and the error bar holds).
     - `conservative`: the variance is not the estimator's own (the spread of
       replicas, strata or antithetic pairs) but the i.i.d. variance of the
       contributions, over 4 times larger, reported because a power-law tail

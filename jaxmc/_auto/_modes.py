@@ -1,16 +1,14 @@
 r"""Modes that auto's seeded mixture missed: found by ascent from the QMC pilot's best points.
 
-A grid trained by VEGAS+ can lock onto one of several separated peaks: on i-flow's
-16-D camel (two Gaussians of width 0.14 at $1/3$ and $2/3$ on the diagonal) at
-$10^5$ evaluations the trained grid, and the mixture seeded from its points, held
-one mode in 7 keys of 10, and the estimate was half the truth at 5-750 of its
-standard errors; the training rounds were too noisy to object, and vegas did the
-same (coverage 0). The QMC pilot's points, spread over the whole box, lie on
-both sides: local ascent of $\log|f|$ from its best `MODE_STARTS` points
+A grid trained by VEGAS+ can lock onto one of several separated peaks (two Gaussians on
+a diagonal, say): the grid and the mixture seeded from its points then hold one mode,
+the estimate misses the other's mass by many standard errors, and the training rounds
+are too noisy to object (vegas does the same). The QMC pilot's points, spread over the
+whole box, lie on both sides: local ascent of $\log|f|$ from its best `MODE_STARTS` points
 (`optimistix.BFGS`, in logit coordinates of the box, at most `MODE_STEPS` steps)
 reaches the modes near them. A mode where the mixture puts far less density than
 the integrand asks, $|f(m)| > $ `UNDERCOVERED` $\hat I\,q(m)$ ($\hat I$ the grid's
-estimate, its largest weights capped: `_pilot_mixture.truncated_integral`), gets
+estimate, its largest weights capped: `_mixture.truncated_integral`), gets
 a Gaussian of its own (Laplace's approximation: the covariance $H^{-1}$ of
 $-\log|f|$ at $m$, its diagonal kept), at most `MODE_COMPONENTS` of them, one at
 a time, each judged against the mixture with the ones before, each in place of
@@ -111,9 +109,8 @@ def log_undercover(density, integral, modes, values, valid):
 
 def grid_misses_a_mode(grid, integral, modes, values, valid):
     """Whether one of the `modes` is `UNDERCOVERED` by `grid` itself: the grid then misses
-    mass its figure cannot show (i-flow's 16-D camel: a grid that held one mode of two
-    measured a relative variance per evaluation of 1.3e3, and its stream returned half
-    the truth at 219 standard errors)."""
+    mass its figure cannot show: its values never see the missing mode, so neither its
+    variance nor its stream's error bar counts it."""
     return jnp.any(log_undercover(grid, integral, modes, values, valid) > math.log(UNDERCOVERED))
 
 

@@ -174,8 +174,8 @@ def antithetic(
     y, bad = ratio(fx, jnp.broadcast_to(1.0 / volume, (n,)))
     pair_means = 0.5 * (y[:pairs] + y[pairs:])
     est = estimate_iid(pair_means, bad[:pairs] | bad[pairs:])
-    # Pairs are a structure like strata: under a power-law tail their spread is skewed
-    # (x^-1/2 covered 89% at 2 sigma), so the i.i.d. variance of all values bounds it.
+    # Pairs are a structure like strata: under a power-law tail their spread is skewed and
+    # too small, so the i.i.d. variance of all values bounds it.
     variance, conservative = bounded_variance(est.variance, est.mean, tail_of(y))
     return dataclasses.replace(
         est,

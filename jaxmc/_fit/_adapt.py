@@ -123,8 +123,7 @@ def adapt(
 
     The rounds are then combined by `combine(parts, sequential=True)`: inverse-variance
     weights, each round's taken from the round before it (fixed before the round drew:
-    a round's own variance would favour the rounds that came out low, a bias of 25%
-    on a thin shell), so the
+    a round's own variance would favour the rounds that came out low), so the
     result carries `chi2_dof` and `q` — a tiny `q` says the rounds disagree, e.g.
     because the early ones missed a peak, and outside `jit` a `q` below 1e-3
     warns with `jaxmc.ReliabilityWarning` — and the per-round estimates in

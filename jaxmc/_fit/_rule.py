@@ -163,8 +163,8 @@ def run_adaptation(
 def _run_active(round_, carry, static, no_estimate, no_samples, iterations, active, keep_samples):
     """`run_adaptation`'s rounds up to a traced count `active`: a `while_loop` that writes each
     round's estimate into the stacked zeros of all `iterations` (a `scan` whose later rounds
-    `cond` skipped copied its carry through each of them: 0.2-0.3 ms a call, 4-D, rounds of
-    2^11-2^14). Not reverse-differentiable: the fits it serves are held fixed."""
+    `cond` skipped would still copy its carry through each of them). Not
+    reverse-differentiable: the fits it serves are held fixed."""
     stacked = jax.tree.map(lambda z: jnp.zeros((iterations,) + z.shape, z.dtype), no_estimate)
 
     def body(loop):

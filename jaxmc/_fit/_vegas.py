@@ -44,14 +44,13 @@ def _unit(y: jax.Array) -> jax.Array:
     squares would overflow) or below $2^{-e/2}$ ($5 \\times 10^{-20}$, $7 \\times
     10^{-155}$: every square underflows); 1 otherwise.
 
-    In float32 only values from $10^{-19}$ to $10^{19}$ have squares in range: a 4-D
-    peak scaled by $10^{25}$ refined its grid on zeros (the overflowed squares) where $f$
-    was largest and erred 14-77%, one scaled by $10^{-25}$ on underflowed ones, 2-5%; in
-    units of their largest value, ~0.1%. Dividing by a power of two rounds nothing but
-    values it makes subnormal or lifts out of it; in range, where the unit is 1, results
-    are bit for bit as without it. (Lifting a far tail out of the subnormals changes what a grid grazing a
-    missed peak learns: in float64 rounds that saw values of $10^{-141}$ and less of a
-    narrow peak counted more of their tail, and `adapt`'s rounds then disagreed.)"""
+    In float32 only values from $10^{-19}$ to $10^{19}$ have squares in range: beyond,
+    the grid would refine on squares overflowed to inf or underflowed to zero, blind to
+    where $f$ is largest. Dividing by a power of two rounds nothing but values it makes
+    subnormal or lifts out of it; in range, where the unit is 1, results are bit for bit
+    as without it. (Lifting a far tail out of the subnormals changes what a grid grazing
+    a missed peak learns: rounds that saw only such a tail count more of it, and
+    `adapt`'s rounds can then disagree.)"""
     largest = jnp.max(jnp.abs(jax.lax.stop_gradient(y)))
     _, exponent = jnp.frexp(largest)
     reach = jnp.finfo(y.dtype).maxexp
@@ -218,8 +217,8 @@ class VegasPlus(AbstractAdaptation):
     with damping `alpha` on $(f/p)^2$ weighted by each sample's volume $v/n_h$.
     With `diagnostics=False` a round's `Estimate` skips the search for its
     largest values $|y|$: no Pareto $\hat k$ (NaN) and no i.i.d. bound on a
-    power-law tail (`stats.stratified_estimate`), at half the time of a round of
-    2048 points on a CPU; for rounds whose error bars are not reported.
+    power-law tail (`stats.stratified_estimate`), which saves much of a small round's
+    time; for rounds whose error bars are not reported.
 
     With `coarse_bins` $M$ (a divisor of the grid's bins) and `coarse` true, the
     grid is refined as a grid of $M$ bins held in its own (`Grid.refine_bins`).

@@ -19,19 +19,14 @@ The powers are read off the trained grid itself (`edge_powers`). At the fixed po
 VEGAS's refinement the bins carry equal shares of $|f|$'s marginal along each axis, whose
 cumulative mass near a face goes as $x^{1-a}$: so the $k$-th edge from the face sits at
 $e_k \propto k^{p}$, and $p$ is the slope of $\log e_k$ on $\log k$ over the edges
-`EDGE_FIT`. The first edge is off the law (on $x^{-1/2}$ in 2-D the first bin held twice the
-others' mass): it is left out of the fit, and the first `EDGE_FIT[1]` bins are laid evenly
-in $z$ (`_tables`). On the grids `auto` trains at $10^5$ the slope read 1.35-1.6 for
-$x^{-1/3}$ in 6-D ($p = 1.5$), 1.7 for $x^{-1/2}$ in 2-D ($p = 2$) and 1.01-1.03 for the
-corner singularity $(\sum x)^{-3/2}$ in 4-D, whose marginals are bounded. A power under the
-true $p$ leaves $f/q \sim (x - lo)^{1/p_{true} - 1/p}$, a weaker singularity; one above it
-a density that falls to zero at the face, and $f/q$ bounded: so the slope is raised by
-`EDGE_OVERSHOOT`. Through grids trained as `auto` trains them at $10^5$ (3 keys each):
-$x^{-1/2}$'s values $f/q$ reached 1.8x their mean on $2^{19}$ points (through the grid
-alone: 140-200x), Pareto $\hat k$ -0.4 to -0.5 (0.4-0.6); the relative variance per
-evaluation of 64 nets of $2^{14}$ points through it was 2e-5-8e-5 on $x^{-1/3}$ in 6-D
-(through the grid alone, 3e-3-4e-3, understated by its tail) and 3e-7-1e-6 on $x^{-1/2}$
-(7e-2-8e-2).
+`EDGE_FIT`. The first edge is off the law (the trained first bin's mass is off its share):
+it is left out of the fit, and the first `EDGE_FIT[1]` bins are laid evenly in $z$
+(`_tables`). A corner singularity such as $(\sum x)^{-3/2}$ has bounded marginals, so its
+slope reads near 1 and its axes stay linear (`EDGE_MIN_POWER`). A power under the true $p$
+leaves $f/q \sim (x - lo)^{1/p_{true} - 1/p}$, a weaker singularity; one above it a density
+that falls to zero at the face, and $f/q$ bounded: so the slope is raised by
+`EDGE_OVERSHOOT`. With $f/q$ bounded, the values have no power-law tail, and QMC's replicas
+through the bent grid estimate its error again.
 """
 from __future__ import annotations
 
@@ -53,9 +48,8 @@ EDGE_OVERSHOOT = 1.2  # the slope, raised: a density that falls faster than f le
 MAX_EDGE_POWER = 4.0  # a <= 3/4
 MIN_EDGED_BINS = 4 * EDGE_FIT[1]  # (auto's grids hold 64 to 1024)
 # QMC through a bent grid streams at least this many replicas (3 by default, `_plan`): the
-# replicas' means are skewed there (skewness -1, excess kurtosis 2 in 1-D, nets of 2^11), and
-# few of them understate the error: 2-sigma coverage (Student's t) 0.865 on x^-1/2 in 1-D at
-# 2^14 with 5 replicas, 0.88 on x^-1/3 (200 keys each, under jit); with 8, raw 0.88 on both.
+# replicas' means are skewed there, and few of them understate the error (Student's t
+# assumes normal means); the count was chosen on the project's benchmarks.
 BENT_REPLICAS = 8
 # A face is bent only where the box's coordinates resolve distances to it this small (in
 # units of the box's width): in float32 only a face at 0 (see `edge_powers`).
@@ -130,7 +124,7 @@ class EdgedGrid(eqx.Module):
         distance = jnp.exp(power * log_z)
         lo, hi = (jnp.reshape(b, (grid.dim,)) for b in (grid.lo, grid.hi))
         x = to_box(jnp.where(lower, distance, 1 - distance), lo, hi)
-        # (`sum_last`: XLA on the CPU sums a short trailing axis 2x slower.)
+        # (`sum_last`: XLA on the CPU sums a short trailing axis slowly.)
         log_q = -sum_last(gather(self.log_scale) + jnp.log(jnp.abs(step)) + (power - 1) * log_z)
         return x, log_q - log_volume(grid.lo, grid.hi)
 
@@ -142,9 +136,8 @@ def _tables(grid: Grid, low, high):
 
     Where a face has a power, the first `EDGE_FIT[1]` bins from it are even in $z$ (their
     edges follow the power law to the last of them, which stays): the trained first bin is
-    off the law (on $x^{-1/2}$ in 2-D it held twice the others' mass, and a corner of two
-    such bins carried values 6x the mean on 1 point in 65536, which QMC's replicas missed
-    together, at 4-7 standard errors on 6% of keys)."""
+    off the law, and a corner of two such bins carries rare large values $f/q$ that QMC's
+    replicas can all miss together, understating the error."""
     edges = grid._unit_edges()
     k = EDGE_FIT[1]
     even = jnp.arange(k + 1, dtype=edges.dtype) / k
@@ -175,8 +168,8 @@ def edge_powers(grid: Grid) -> tuple[jax.Array, jax.Array]:
     apart or closer: a point nearer the face than their spacing rounds onto it (and `to_box`
     moves it inside), where the bent map would count mass no float can hold. In float32 at
     $hi = 1$ that is the $6 \times 10^{-8}$ nearest the face, 2.4e-4 of $(1 - x)^{-1/2}$'s
-    integral, which the bent grid's error bar (7e-6 at $2^{16}$) did not cover: missed at
-    19 standard errors. Through the grid alone that mass is missed as well, under error bars
+    integral, far more than the bent grid's error bar, which would not cover the missing
+    mass. Through the grid alone that mass is missed as well, under error bars
     as wide as it. In float64 (spacing 2.2e-16 at 1) and at a face at 0 (any float type) it
     is 1.5e-8 of that integral or less."""
     edges = grid._unit_edges()

@@ -14,9 +14,9 @@ class Mapped(AbstractMethod):
     when a limit is infinite: per infinite axis,
     $x = c + \tfrac{sk}{2}[(1 - t)^{-1/k} - (1 + t)^{-1/k}]$ on $t \in (-1, 1)$, or
     $x = a \pm sk[(1 - t)^{-1/k} - 1]$ on $t \in (0, 1)$ for a half-line from $a$; the map's
-    quartiles (median, on a half-line) are those of $|f|$'s marginal, measured by two pilots,
+    quartiles (median, on a half-line) are those of $|f|$'s marginal, estimated by two pilots,
     and its tail $k$ the largest that keeps $f\,|x'|$ bounded given the decay of $|f|$
-    measured by probes out to $2^{20}$ scales along each infinite axis and their diagonal
+    estimated by probes out to $2^{20}$ scales along each infinite axis and their diagonal
     ($k = 1$ is the rational map $x = c + s\,t/(1 - t^2)$). As a plan it keeps both, so
     that `integrate(..., method=est.plan)` with the same limits reuses the maps too.
 

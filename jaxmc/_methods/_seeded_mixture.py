@@ -28,17 +28,14 @@ from ..proposals import GaussianMixture, Grid, Mixture
 
 MIXTURE_COMPONENTS = 8  # Gaussians in the mixture seeded from the grid
 DEFENSIVE_SHARE = 0.1  # the trained grid's share of the mixture
-# EM iterations seeding the mixture. 20 fitted as well as 50 (4 keys each of vegas's 4-D
-# Gaussian, i-flow's camels, the 5-D posterior), and 10 as well as 20: the mixture's
-# variance per evaluation, on 8x the pilot's points, 6 keys each of those, i-flow's 8-D
-# Gaussian and two 4-D Gaussians (and the 10-D ball at 1e6), had geometric means within
-# 10% at 1e5 and 1e6; 5 left a posterior key unfitted. An EM step costs ~0.12 ms on
-# 2048 points in 4-D, ~0.24 ms on 4096 in 8-D (the exponentials of the responsibilities).
+# EM iterations seeding the mixture: more fit no better on the project's benchmarks,
+# fewer could leave a fit unconverged, and each step costs time in proportion to its points
+# (the exponentials of the responsibilities).
 MIXTURE_EM_ITERATIONS = 10
 MIXTURE_FIT_POINTS = 4096  # at most this many of the grid's points seed the mixture
 # The winning mixture's refit: on about a tenth of what the pilot left (a power of two,
-# at most ADAPT_MAX_POINTS), EM on at most ADAPT_FIT_POINTS of them (~11 ms in 4-D on a
-# CPU; see `adapted_mixture` for what 2^13 cost).
+# at most ADAPT_MAX_POINTS), EM on at most ADAPT_FIT_POINTS of them (EM's time grows with
+# its points; fewer fit noisier, see `adapted_mixture`).
 ADAPT_SHARE = 10
 ADAPT_MAX_POINTS = 1 << 16
 ADAPT_FIT_POINTS = 1 << 14
@@ -71,14 +68,11 @@ def _with_wide_gaussian(gm: GaussianMixture, grid: Grid, x, weights, share) -> G
     weighted mean, `WIDE_SCALE` times their weighted standard deviation on each axis.
 
     EM fits the Gaussians to what their points saw, and diagonal ones lie across a
-    correlated peak: along the 5-D posterior's diagonal $f$ spreads as
-    $\sigma\sqrt{1 + 4\rho} = 1.95\sigma$, past the fitted parts, and where $q$ falls
-    faster than $f$ the weights $f/q$ have a heavy tail (Pareto $\hat k$ up to 0.9).
-    The wide part bounds them: its variance on every axis, $4 s_j^2$, exceeds a
-    Gaussian's along any direction of correlation up to $\rho \approx 0.75$ in 5-D.
-    Measured at $10^6$ (`auto`, RMS relative error over 8 keys, its share by
-    `_wide_share`): the posterior 2.2e-3 -> 7.8e-4 (2-sigma coverage 0.88 -> 1),
-    vegas's 4-D Gaussian 1.2e-4 -> 1.1e-4, i-flow's 8-D one 1.2e-4 -> 1.5e-4.
+    correlated peak: along the diagonal of a $d$-D Gaussian of equal correlations $\rho$,
+    $f$ spreads as $\sigma\sqrt{1 + (d - 1)\rho}$, past the fitted parts, and where $q$
+    falls faster than $f$ the weights $f/q$ have a heavy tail. The wide part bounds them:
+    its variance on every axis, $4 s_j^2$, exceeds a Gaussian's along any direction of
+    correlation up to $\rho = 3/(d - 1)$ ($0.75$ in 5-D).
     """
     mean = jnp.sum(weights[:, None] * x, axis=0)
     sd = jnp.sqrt(jnp.sum(weights[:, None] * (x - mean) ** 2, axis=0))
@@ -98,10 +92,9 @@ def _wide_share(weights):
     `WIDE_MAX_SHARE`].
 
     Where the Gaussians fit, a share $\alpha$ costs about $\alpha/(1-\alpha)$ in
-    relative variance per evaluation (its points are wasted): a fixed 0.1 lost 9x in
-    variance on vegas's 4-D Gaussian and i-flow's 8-D one (relative variance ~0.015).
-    The points' spread measures how far the mixture they came from fits: heavy weights
-    get the full share, a fit that is already close a small one.
+    relative variance per evaluation (its points are wasted): for a fixed 0.1, many times
+    a close fit's own. The points' spread measures how far the mixture they came from
+    fits: heavy weights get the full share, a fit that is already close a small one.
     """
     v = weights.shape[0] * jnp.sum(weights**2) - 1
     return jnp.clip(v / 8, WIDE_MIN_SHARE, WIDE_MAX_SHARE)
@@ -173,30 +166,14 @@ def adapted_mixture(key, mixture: Mixture, draws, *, f, size, batched) -> Mixtur
     Carlo): to the pilot's `draws = (x, y)`, which cost nothing more, then to `size`
     points drawn from that refit.
 
-    Measured before the wide Gaussian (relative variance per evaluation on $2^{18}$
-    points, 4 keys, geometric mean; as seeded, then after the two refits; the camel's
-    are the spread of a mixture that had found one of its two modes, about a mean half
-    the truth), at $10^6$ ($2^{16}$ points): 5-D
-    posterior 3.0 -> 0.45, i-flow's 16-D camel 4.4 -> 0.17, 10-D ball 42 -> 3.6,
-    i-flow's 8-D Gaussian 0.020 -> 0.013, vegas's 4-D Gaussian 0.011 -> 0.012; at
-    $10^5$ ($2^{12}$ points): camel 1.2 -> 0.13, ball 59 -> 3.8, i-flow's Gaussian
-    0.036 -> 0.025, vegas's 0.023 -> 0.025, and the posterior's RMS error over 7
-    keys halved. A refit on the pilot's points alone gained less (0.9 and 0.52 on the
-    posterior and the camel at $10^6$), one from the seeded mixture's own $2^{16}$
-    points erred once on the posterior (32 against 5.7), and EM on $2^{13}$ of the
-    $2^{16}$ points left vegas's Gaussian at 0.016: the refit's parameters carry the
-    noise of its points' effective sample size, which a mixture that already fits
-    well feels.
-    The `size` points are not in the estimate (as the pilot's): drawn from a mixture
-    that fitted worse, they would weigh on it. The fits and the draw are compiled
-    once per shape; only the values (`mixture_values`) for each integrand.
-
-    Cost (the `auto` benchmark, whole calls that streamed from the mixture, float64 on a
-    CPU): +5-17 ms at $10^5$ (30-45 ms before), +23-50 ms at $10^6$ (160-230 ms before),
-    and ~3 s more in a first call (two EM fits, a draw from the mixture: 11-12 s to
-    13-15 s). The posterior's efficiency ratio to the better of vegas and SciPy went
-    0.04 -> 4.7 at $10^6$ and 8 -> 38 at $10^5$, the 10-D ball's and i-flow's 8-D
-    Gaussian's 1.2 -> 2.1 and 2.3 -> 3.5 at $10^6$.
+    Two refits, the second on fresh points, move the Gaussians further onto the
+    integrand than a refit on the pilot's points alone (chosen on the project's
+    benchmarks). The refit's parameters carry the noise of its points' effective sample
+    size, which a mixture that already fits well feels: hence EM on up to
+    `ADAPT_FIT_POINTS` of them. The `size` points are not in the estimate (as the
+    pilot's): drawn from a mixture that fitted worse, they would weigh on it. The fits
+    and the draw are compiled once per shape; only the values (`mixture_values`) for each
+    integrand. They cost two EM fits and a draw (and their compilation in a first call).
     """
     mixture, x, p = _refit_and_draw(key, mixture, draws, size=size)
     return _refit_jitted(mixture, x, mixture_values(x, p, f=f, batched=batched))

@@ -59,10 +59,9 @@ def uint32_to_unit(x: jax.Array, dtype: np.dtype, centred: bool = False) -> jax.
     (float32: $(\lfloor x / 2^9 \rfloor + 1/2) / 2^{23}$, exact in 24 bits), for
     randomised points: a random digital shift makes $x$ uniform on the $2^{32}$
     cells, so $x / 2^{32}$ averages $f$ at the cells' left ends, a bias of
-    $2^{-33} \sum_i \int (f|_{u_i=0} - f|_{u_i=1})$ (measured: $4 \cdot 10^{-10}$
-    relative on a 2-D Genz corner peak: an offset common to all replicas, which
-    their spread, often $10^{-11}$ to $10^{-10}$ with nets of $2^{18}$ points, does
-    not see, so the $t$ interval covered 0.6); the centre's is $O(2^{-64})$.
+    $2^{-33} \sum_i \int (f|_{u_i=0} - f|_{u_i=1})$: an offset common to all replicas,
+    which their spread does not see, and which on large nets can exceed QMC's own error;
+    the centre's is $O(2^{-64})$.
     """
     if centred:  # strictly inside (0, 1) as it stands
         bits = min(32, jnp.finfo(dtype).nmant)

@@ -75,7 +75,7 @@ class _Residues:
             return self._wrap(x * y)
         if self.small:
             return (x * y) % self.m
-        if x64_enabled():  # the same residues, three times faster
+        if x64_enabled():  # the same residues, faster
             wide = jnp.asarray(x).astype(jnp.uint64) * jnp.asarray(y).astype(jnp.uint64)
             return (wide % np.uint64(self.m)).astype(jnp.uint32)
         hi, lo = _multiply_wide(x, y)
@@ -171,7 +171,7 @@ def _lcg(seed, n, a, c, m, dtype):
         return _to_unit(residues.add(residues.mul(step_a, start), step_c), m, dtype)
 
     # A loop over blocks, not one (blocks, B) broadcast: XLA's CPU code for the
-    # long integer chains is several times slower on the 2-D broadcast.
+    # long integer chains is much slower on the 2-D broadcast.
     return lax.map(one_block, starts).reshape(-1)[:n]
 
 

@@ -143,7 +143,7 @@ def _from_matrix(proposal: AbstractProposal, x: jax.Array) -> jax.Array:
 
 def sum_last(a: jax.Array) -> jax.Array:
     """Sum over a short last axis as explicit adds (XLA on the CPU reduces a trailing
-    axis of a few elements several times slower than it adds columns)."""
+    axis of a few elements more slowly than it adds columns)."""
     if a.shape[-1] > 16:
         return jnp.sum(a, axis=-1)
     total = a[..., 0]

@@ -120,14 +120,14 @@ class Grid(AbstractUnitMap):
         CPU fuses the table's softmax and logs into the gathers below otherwise,
         recomputing them for every point.
         """
-        if table is None:  # materialised once, not fused into the gathers (27% of a 8-D draw)
+        if table is None:  # materialised once, not fused into the gathers
             table = jax.lax.optimization_barrier(self.lookup_table())
         left, width, log_w = table
         nb = self.bins
         y = u * nb
         i = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, nb - 1)
         frac = y - i
-        # Scalar gathers (several times faster than one gather of table rows on the CPU).
+        # Scalar gathers (faster than one gather of table rows on the CPU).
         flat = i + nb * jnp.arange(self.dim, dtype=jnp.int32)
         gather = lambda t: t.at[flat].get(mode="promise_in_bounds")  # noqa: E731
         wi = gather(width)
@@ -141,9 +141,8 @@ class Grid(AbstractUnitMap):
         each coordinate, clipped to the bins.
 
         A branchless binary search, all axes at once: $\lceil\log_2(N+1)\rceil$ steps,
-        each one scalar gather from the flattened edges per coordinate. On a CPU, 8-D, 256
-        bins, `log_pdf` takes ~65 ns a point, against ~290 with `jnp.searchsorted` per
-        axis, which was most of the time of auto's defensive mixture.
+        each one scalar gather from the flattened edges per coordinate: on a CPU much
+        faster than `jnp.searchsorted` per axis.
         """
         e = self._unit_edges()
         flat_edges = jnp.reshape(e, (-1,))  # computed once, outside the search's loop
@@ -159,7 +158,7 @@ class Grid(AbstractUnitMap):
             return jnp.where(flat_edges.at[at + row].get(mode="promise_in_bounds") <= t, at, index)
 
         # A loop, so the index is stored between steps: unrolled, XLA fused each step with
-        # the chain of earlier ones and recomputed it from their gathered edges (3x slower).
+        # the chain of earlier ones and recomputed it from their gathered edges.
         # (`zeros_like`: the carry keeps `t`'s type, varying over a `shard_map`'s axes.)
         index = jax.lax.fori_loop(0, steps, probe, jnp.zeros_like(t, dtype=jnp.int32))
         return jnp.clip(index, 0, self.bins - 1)
@@ -167,8 +166,7 @@ class Grid(AbstractUnitMap):
     def log_pdf(self, x):
         xm, batch = _as_matrix(self, x)
         _, _, log_w = self.lookup_table()
-        # Materialised once: fused into the gather, the logs would be recomputed per point
-        # (a third of the time of a 16-D density).
+        # Materialised once: fused into the gather, the logs would be recomputed per point.
         log_w = jax.lax.optimization_barrier(log_w)
         flat = self.bin_index(xm) + self.bins * jnp.arange(self.dim, dtype=jnp.int32)
         lp = -sum_last(log_w.at[flat].get(mode="promise_in_bounds")) - log_volume(self.lo, self.hi)
@@ -197,12 +195,10 @@ class Grid(AbstractUnitMap):
         sample has landed (the zero side of a discontinuity) loses all its
         mass, and the bin next to it stretches across it and into the region
         where $f \ne 0$: that sliver is then sampled so rarely that most
-        rounds never see its huge $f/p$, and their error bars are too small
-        (on Genz's discontinuous family in 4-D, 2-sigma coverage fell to 0.4).
+        rounds never see its huge $f/p$, and their error bars are too small.
         Above 64 bins the share is the mass of 0.64 bins rather than 1%, so such a
-        region keeps the same share of a bin at any $N$: at 1024 bins, 1% held
-        ~10 bins away from where $f/p$ is large, and a grid refined on
-        $\prod_i x_i^{-1/3}$ in 6-D sampled it with 1.4x the variance.
+        region keeps the same share of a bin at any $N$: at 1024 bins, 1% would
+        hold ~10 bins away from where $f/p$ is large.
 
         **Arguments:** `x` `(n, d)` (or `(n,)`) sample points; `weights` `(n,)`
         non-negative; `alpha` the damping exponent.
@@ -228,9 +224,9 @@ class Grid(AbstractUnitMap):
         With `point_weights` `(n,)` (each point's share of the unit cube, e.g. $v/n_h$ in a
         stratified round), each bin's sum of `weights` is divided by its sum of
         `point_weights` (in place of `counts`): a ratio estimate of the bin's mean of
-        $(f/p)^2$, free of the noise in how many points fell in it (as vegas's `sum_f / n_f`). On a fine grid with few
-        points per bin that noise dominates the sums: on $\prod_i x_i^{-1/3}$ in 6-D, 1024
-        bins refined on rounds of 8896 points, it left the map with 1.7x the variance.
+        $(f/p)^2$, free of the noise in how many points fell in it (as vegas's
+        `sum_f / n_f`). On a fine grid with few points per bin that noise dominates the sums
+        and distorts the map.
 
         With `coarse_bins` (a static divisor $M$ of `bins` $N$) and `coarse` (may be
         traced), the rule runs on $M$ groups of $N/M$ adjacent bins each and splits every

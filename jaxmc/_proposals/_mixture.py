@@ -31,8 +31,8 @@ class Mixture(AbstractProposal):
     Zhou 2000). $\frac1n\sum_i f(x_i)/p(x_i)$ stays unbiased, its variance is
     never above that of i.i.d. component choice (the i.i.d. variance of the
     values is then a conservative error bar), and no component is drawn for
-    points it does not serve (`integrate`'s 8-D mixture stream: about 9% less
-    time at $10^6$ points, where every point was drawn from both parts). The
+    points it does not serve (i.i.d. choice, vectorised, draws every point from
+    every component). The
     components' points come evenly interleaved and turned by a uniform random
     offset, so that each place holds component $k$ with probability $n_k/n$ and
     any first $m$ of them hold $m n_k/n$ give or take one: their mean is

@@ -51,8 +51,7 @@ def truncnorm_icdf(u: jax.Array, mu: jax.Array, sigma: jax.Array, lo, hi, compon
     e_t = jnp.exp(-lam * (b2 - a2))
     if component is not None:
         # Stacked and materialised once: gathered one by one, XLA fused `ndtr` (and the
-        # tail's exponential) into the gathers outside loops, computing them per point (a
-        # mixture's sample took 4x as long).
+        # tail's exponential) into the gathers outside loops, computing them per point.
         table = jnp.stack(jnp.broadcast_arrays(mu, sigma, a2, b2, pa, pb, lam, e_t))
         table = jax.lax.optimization_barrier(table)
         flip = flip[component]

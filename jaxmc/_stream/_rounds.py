@@ -11,11 +11,10 @@ see 2):
    and go on refining the grid and the allocation for the next, as vegas adapts
    through the iterations it reports. Their estimates are averaged with
    weights growing with the round, fixed in advance, and the error bar is
-   their scatter (`average_rounds`). Measured at $10^5$ evaluations on the
-   10-D ball indicator: relative error 0.18 on a grid frozen after training,
-   0.009 refined (vegas: 0.024). On a correlated 5-D posterior the refined
-   grid narrows and its rounds grow heavy-tailed: 0.058 against 0.022 frozen
-   (vegas: 0.035), the one case measured where refining did not pay. Where
+   their scatter (`average_rounds`). Refining fixes what a grid frozen after
+   a short training still gets wrong, and beat freezing on the project's
+   benchmarks, except where the refined grid narrows onto a correlated peak
+   and its rounds grow heavy-tailed. Where
    `auto`'s grid trained under a power-law tail, a fixed budget's refining
    rounds are 4x larger on a grid subdivided to 4x the bins (`tail_refining`).
 3. **Streaming**, with a tolerance the refining rounds did not meet: the last
@@ -57,9 +56,9 @@ MIN_ROUNDS_TO_STOP = MIN_BLOCKS_TO_STOP  # the refining rounds' too: fewer canno
 def adaptive_block(budget: int) -> int:
     """Points per VEGAS+ round: about budget/40 as a power of two, 256 to 2^14.
 
-    Small rounds let the grid train for its ten rounds on a quarter of the budget
-    (measured on vegas's 4-D Gaussian at 1e5: rounds of 2^11 halve the error of
-    rounds of 2^12); beyond 2^14 larger rounds gained nothing.
+    Small rounds let the grid train for its ten rounds on a quarter of the budget, leaving
+    more rounds to refine it; larger rounds than 2^14 gained nothing on the project's
+    benchmarks.
     """
     if budget < 16 * 256:
         raise ValueError(f"method='adaptive' needs a budget of at least {16 * 256}, got {budget}.")
@@ -70,12 +69,10 @@ def grid_bins(block: int) -> int:
     """Grid bins per axis for rounds of `block` points: `block / 64` (a power of two, rounded
     down), 64 to 256.
 
-    vegas gives its map `neval / 10` increments (at most 1000); with jaxmc's rule,
-    rounds of 2^14 points did better with 256 bins than with 64 (relative error,
-    8 keys at 1e6 evaluations: 5-D posterior 7.1e-3 -> 4.5e-3, x^-1/3 in 6-D
-    1.9e-4 -> 1.1e-4, vegas's 4-D Gaussian 3.9e-4 -> 2.8e-4) and 1024 overfit
-    the 10-D ball's histogram (1.2e-3 -> 7.8e-3); rounds of 2^11 gained
-    nothing beyond 64.
+    vegas gives its map `neval / 10` increments (at most 1000). Here each bin keeps about
+    64 points, so its histogram is not dominated by noise: more bins resolve the integrand
+    better until the histogram overfits a round's noise (the cap, chosen on the project's
+    benchmarks).
     """
     return min(256, max(64, 1 << (max(1, block // 64).bit_length() - 1)))
 
@@ -90,15 +87,10 @@ def fine_grid_bins(block: int) -> int:
     dimensions: `block / 8`, 64 to 256.
 
     vegas gives its map `neval / 10` increments, whose bins near a singularity or on a
-    peak resolve it. `auto` at 1e5 (rounds of 2^11, 10 keys, relative error), 256 bins
-    against `grid_bins`' 64: x^-1/2 in 2-D 1.9e-3 -> 6.2e-4, x^-1/3 in 6-D 1.1e-3 ->
-    6.9e-4, vegas's 4-D Gaussian 6.3e-4 -> 6.1e-5 (QMC through the grid now wins), a
-    correlated 5-D posterior 2.2e-3 -> 3.5e-3 (still 50x the anchors' efficiency); in 8
-    and 16 dimensions none gained and three lost (i-flow's 8-D Gaussian 1.8e-4 -> 3.0e-4,
-    the 16-D camel 1.4e-3 -> 2.2e-3, Genz's 16-D corner peak 3.6e-4 -> 4.3e-4): the
-    product of more axes' densities makes each axis' histogram noisier. Without a power-law
-    tail 256 bins overfit: the 10-D ball indicator erred 7x as much (so `auto` refines
-    at `grid_bins` there, `VegasPlus.coarse`).
+    peak resolve it. In more dimensions the product of more axes' densities makes each
+    axis' histogram noisier, so fine bins stop paying (the limit chosen on the project's
+    benchmarks); without a power-law tail they overfit (so `auto` refines at `grid_bins`
+    there, `VegasPlus.coarse`).
     """
     return max(grid_bins(block), min(256, block // 8))
 
@@ -112,8 +104,8 @@ def is_fine(state, d: int):
 
 @functools.partial(jax.jit, static_argnames="bins")
 def uniform_grid(lo, hi, *, bins):
-    """`Grid(lo, hi, bins)`, uniform, in one dispatch (eagerly, its checks and casts cost
-    ~0.2 ms, a tenth of a small `integrate` call). `lo < hi` is checked by the caller."""
+    """`Grid(lo, hi, bins)`, uniform, in one dispatch (eagerly, its checks and casts are a
+    sizeable share of a small `integrate` call). `lo < hi` is checked by the caller."""
     return Grid(lo, hi, bins=bins)
 
 
@@ -129,24 +121,17 @@ def tail_refining(budget: int, block: int) -> tuple[int, int]:
     `budget` split evenly into rounds of about `TAIL_GROWTH * block` points (a multiple of
     64), or `(0, 0)` where fewer than `MIN_TAIL_ROUNDS` fit.
 
-    vegas refines its ~1000 increments per axis on its later iterations' 75,000 points at
-    $10^6$ evaluations. `auto`'s grid under a power-law tail (fine bins, `fine_grid_bins`),
-    refined on rounds of 4x its training's and subdivided to 4x the bins (`refine_finer`)
-    rather than on rounds of the training's size (RMS relative error over 48-160 keys from
-    key 100, from grids trained at 256 bins as `method="adaptive"` trains them): x^-1/3 in
-    6-D 1.41e-4 -> 9.0e-5 at $10^6$ (vegas 8.0e-5) and 6.3e-4 -> 5.4e-4 at $10^5$; x^-1/2
-    in 2-D 1.29e-4 -> 7.4e-5 and 6.6e-4 -> 5.9e-4; (sum x)^-3/2 in 4-D 6.9e-5 -> 4.8e-5 and
-    4.8e-4 -> 3.7e-4; vegas's 4-D Gaussian 4.0e-4 -> 2.7e-4 and a correlated 5-D posterior
-    2.1e-3 -> 1.5e-3 at $10^6$. Within `auto` at $10^6$ (100 keys from 300, those QMC did
-    not win): (sum x)^-3/2 8.7e-5 -> 5.3e-5, x^-1/3 1.40e-4 -> 1.14e-4, no slower. Larger rounds
-    alone (256 bins, 2^16 points) did worse on x^-1/3, and 4x the bins on the 10-D ball (no
-    tail) 1.7x worse: there the grid refines as it trained (`method="adaptive"`, which knows
-    of no tail, does too).
+    vegas, too, refines a map of ~1000 increments per axis on large later iterations. Under a
+    power-law tail, a grid with more bins resolves the singularity or peak further, and
+    larger rounds keep each finer bin's histogram as well sampled as in training; together
+    they beat refining as trained on the project's benchmarks (larger rounds alone did
+    not). Without a tail the finer grid only overfits, so there the grid refines as it
+    trained (`method="adaptive"`, which knows of no tail, does too).
     """
     rounds = budget // (TAIL_GROWTH * block)
     if rounds < MIN_TAIL_ROUNDS:
         return 0, 0
-    # A multiple of 64 points: rounds of an odd size took 1.4x as long (11 rounds of ~7e4, 6-D).
+    # A multiple of 64 points: rounds of an odd size ran markedly slower.
     return rounds, budget // rounds // 64 * 64
 
 
@@ -315,10 +300,9 @@ def average_rounds(parts: Estimate, done, last_values=None) -> Estimate:
     not from the rounds' own error bars
     (i.i.d. bounds when $f/p$ has a power-law tail). Weights from the rounds'
     variances, as vegas uses, drift low when small rounds that starved a region
-    report small variances: on the coverage suite's thin shell (rounds of 256
-    points), weighted as `combine(..., sequential=True)` weighs them, 0 of 200
-    runs covered the truth and a third were flagged; with these weights 34%
-    cover and 90% are flagged. The Pareto $\hat k$ is that of `last_values`, the
+    report small variances, and the average then misses the truth with too small an
+    error bar; weights fixed in advance cannot be pulled so. The Pareto $\hat k$ is
+    that of `last_values`, the
     values $f/p$ of the last round (the rounds themselves skip the search for
     their largest values, `VegasPlus(diagnostics=False)`); NaN without them.
     """

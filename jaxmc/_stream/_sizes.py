@@ -16,13 +16,10 @@ QMC_REPLICAS = 8  # independent scrambles of the Sobol' sequence with a toleranc
 # n^-1.5 the variance of the mean grows like replicas^2 for a given budget, so fewer, larger
 # nets are more accurate; the error bar then has replicas - 1 degrees of freedom
 # (`Estimate.dof`), and `Estimate.interval` is Student's t: mean +- 2 stderr alone covers
-# P(|t_2| <= 2) = 0.82 with 3 replicas, the t interval of the same level 0.954. Three give
-# a budget of 1e6 (less auto's pilot) 3 nets of 2^18 instead of the 7 of 2^17 that five
-# gave: measured (auto at 1e6), 1.6-3.6x lower RMS error on smooth Genz integrands, a 2-D
-# annulus and a 3-D ball (10 keys), 1.2x on an 8-D discontinuity and an 8-D half-space,
-# equal on an 8-D kink and a 4-D resonance (40 keys); a budget of 1e5 has five nets of
-# 2^14 either way. (Nets of 3 * 2^16 points, for four replicas, are no remedy: the last
-# 2^16 points are an unpaired net, 8x the variance.)
+# P(|t_2| <= 2) = 0.82 with 3 replicas, the t interval of the same level 0.954. Three
+# (chosen on the project's benchmarks) give the largest nets a budget allows while keeping
+# an error bar. (Nets of 3 * 2^16 points, for four replicas, are no remedy: the last 2^16
+# points are an unpaired net, with the larger variance of a smaller net.)
 QMC_MIN_REPLICAS = 3
 # With a tolerance, QMC's blocks are at most this large, and the first chunk is walked in up
 # to MAX_EARLY_STEPS steps, so that its checks start at nets of 2^10 points (8 * 2^10
@@ -32,9 +29,8 @@ MAX_EARLY_STEPS = 32
 QMC_PASSES_TO_STOP = 2  # checks in a row that must pass (see `stream`)
 # A tolerance is checked on block means (stratified, VEGAS+ rounds, and `_adaptive`'s
 # refining rounds) from this many on: with fewer, an error bar of a few degrees of freedom
-# that happened to fall low stops the run. Measured with "auto" at rtol=1e-2 and 1e-3, 40
-# keys, where 8 refining rounds of 2^11 points met it: x^-1/2 in 2-D, 4 keys at z = -3.8
-# to -4.6, (sum x)^-3/2 in 4-D one at z = 11; with 16, none beyond 2.9.
+# that happened to fall low stops the run short of the tolerance (the count chosen on the
+# project's benchmarks).
 MIN_BLOCKS_TO_STOP = 16
 # With only a tolerance (and `rtol` among it), "auto"'s pilot and "adaptive"'s training are
 # first sized for this budget, not for `max_n`: about 3e4 evaluations for the pilot, 2e4 for
@@ -42,14 +38,12 @@ MIN_BLOCKS_TO_STOP = 16
 PROBE_BUDGET = 1 << 17
 # ...and sized for `max_n` after all, anew, when the probe's grid (or auto's winning
 # mixture) needs more than PROBE_REACH times the probe's budget for `rtol` (variance per
-# evaluation / rtol^2): a long run pays for a larger pilot (rounds of 2^14 points, grids of
-# 256 bins per axis: 2-3x less variance at 1e6 than the probe's 2^11 and 64).
+# evaluation / rtol^2): a long run pays for a larger pilot (larger rounds, grids of more
+# bins per axis, `adaptive_block` and `grid_bins`), which trains a better grid.
 PROBE_REACH = 4
 # ...for `method="adaptive"`, twice the budget: beyond it the probe's grid, refined for 32
-# rounds of 2^11 points that its frozen stream then discards, cost more than training anew.
-# Measured on a 4-D Gaussian peak (sd 0.02; the probe asked for 2.6-3.0e5 evaluations at
-# rtol=1e-3): 0.61M evaluations on the probe's grid, 0.45M sized anew (the probe's 2e4
-# included); at rtol=1.5e-3 (1.2e5 asked) 0.23-0.26M on the probe's grid, 0.43M anew.
+# rounds of 2^11 points that its frozen stream then discards, cost more than training anew
+# (the factor chosen on the project's benchmarks).
 ADAPTIVE_PROBE_REACH = 2
 
 
@@ -141,12 +135,7 @@ def sizes(
         if method == "adaptive":  # one VEGAS+ round per block, of the size it was trained at
             block = adaptive_block
         if method == "stratified":
-            per_axis = int(math.floor(block ** (1.0 / d) + 1e-9))
-            if per_axis < 2:
-                raise ValueError(
-                    f"method='stratified' needs at least 2 strata per axis in a block of "
-                    f"{block}, which d={d} does not allow; use method='qmc' or 'plain'."
-                )
+            per_axis = strata_per_axis(budget, block, d)
             strata = (per_axis,) * d
             block = per_axis**d
         blocks = budget // block
@@ -163,6 +152,20 @@ def sizes(
     early = early_steps(per_step, devices, replicas) if tolerant else 1
     return Sizes(method, block, blocks, budget, per_step, steps, early, strata, replicas,
                  net_blocks=net_blocks)
+
+
+def strata_per_axis(budget: int, block: int, d: int) -> int:
+    """Strata per axis of a stratified block of at most `block` points: the most whose whole
+    blocks leave at most `1/EXTRA_GRAIN` of `budget` unspent (fewer strata, more blocks)."""
+    most = int(math.floor(block ** (1.0 / d) + 1e-9))
+    if most < 2:
+        raise ValueError(
+            f"method='stratified' needs at least 2 strata per axis in a block of "
+            f"{block}, which d={d} does not allow; use method='qmc' or 'plain'.")
+    for per_axis in range(most, 1, -1):
+        if budget % per_axis**d <= budget // EXTRA_GRAIN:
+            return per_axis
+    return 2
 
 
 # Randomised QMC on a fixed budget walks its nets in blocks of at most 1/EXTRA_GRAIN of a net,
