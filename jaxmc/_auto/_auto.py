@@ -58,10 +58,8 @@ class Auto(AbstractMethod):
     **Fields:**
 
     - `costs`: time per evaluation of QMC, the grid, QMC through the grid and the mixture,
-      relative to a Sobol' point: their streams' times on a cheap integrand on a CPU (a
-      VEGAS+ round's map, stratified allocation and refinement; the grid's map; a draw from
-      the mixture, its truncated normals and both parts' densities). For an integrand that
-      costs more than these, set them nearer 1.
+      relative to a Sobol' point, as their streams take on a cheap integrand on a CPU. For an
+      integrand that costs more than their maps and draws, set them nearer 1.
     - `confidence`: the standard deviations of its log at which a figure's bounds are read:
       a stage is skipped only when its candidates' optimistic bounds lose to the leader's
       pessimistic one.
@@ -104,9 +102,9 @@ class Auto(AbstractMethod):
 
 @dataclasses.dataclass(frozen=True)
 class Schedule:
-    """The pilot's static sizes: points per replica of QMC's nets (`per_replica`, the early
-    look on a quarter of them), the grid's rounds, the mixture's points and the search for
-    modes; the stream's budget after each stage; QMC's projections to those streams' nets."""
+    """The pilot's static sizes: points per replica of QMC's nets (the early look on a quarter
+    of them), the grid's rounds, the mixture's and the mode search's points, the stream's
+    budget after each stage."""
 
     per_replica: int
     round_size: int
@@ -160,9 +158,8 @@ class _Look(eqx.Module):
 
 @partial(jax.jit, static_argnames=("z", "costs"))
 def _look(y, bins, growths, price, *, z, costs):
-    """QMC's pilot nets measured (QMC projected `growths`-fold, to the stream's nets after
-    this stage and after the grid's), and whether the grid's stage is worth running (its
-    training costing `price` of what is left after it)."""
+    """QMC's pilot nets measured (projected `growths`-fold: to the stream after this stage and
+    after the grid's), and whether the grid's stage, at `price`, is worth running."""
     both = nets_figures(y, bins, growths, z)
     nets, after = (eqx.tree_at(lambda n: n.qmc, both, jax.tree.map(lambda a: a[k], both.qmc))
                    for k in (0, 1))
@@ -195,10 +192,8 @@ class _MixtureStage(eqx.Module):
 
 @partial(jax.jit, static_argnames="costs")
 def _verdict(look: _Look, grid_on, grid, mixture_on, mixture, stages, search_n, rests, *, costs):
-    """The candidates' figures, the winner and the pilot's record, from what ran: `(Pilot,
-    the evaluations left for the stream: `rests`' after the last stage that ran)`. `grid`,
-    `mixture`: the stages' results (`None` where they did not run eagerly). The sizes
-    (`stages`' evaluations, the search's, `rests`) are arrays: one program serves every
+    """From what ran (`grid`, `mixture`: `None` where they did not run eagerly): `(Pilot, the
+    evaluations left for the stream)`. The sizes are arrays: one program serves every
     budget."""
     dtype = look.nets.plain.value.dtype
     figures = [look.nets.qmc]
@@ -266,14 +261,14 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
         figure = adaptive_figure(training.parts, training.samples, z, round_size=s.round_size)
         y = grid_qmc_values(grid_key, grid, f, batched, s.per_replica.bit_length() - 1)
         through = grid_qmc_figure(y, np.asarray(after_grid, dtype), z=z)
-        if not s.mixture_n:
-            return _GridStage(training.state, training.parts, training.samples, figure, through, None,
-                              jnp.full((), jnp.inf, lo.dtype), None, jnp.asarray(False))
-        seeded, outlook = mixture_outlook(grid, training.samples)
-        modes, misses = search_modes(qmc_key, early[0], grid, training.samples, f=f,
-                                     batched=batched)
-        return _GridStage(training.state, training.parts, training.samples, figure, through, seeded,
-                          outlook, modes, misses)
+        seeded, outlook = None, jnp.full((), jnp.inf, lo.dtype)
+        modes, misses = None, jnp.asarray(False)
+        if s.mixture_n:
+            seeded, outlook = mixture_outlook(grid, training.samples)
+            modes, misses = search_modes(qmc_key, early[0], grid, training.samples, f=f,
+                                         batched=batched)
+        return _GridStage(training.state, training.parts, training.samples, figure, through,
+                          seeded, outlook, modes, misses)
 
     grid = stage(grid_on, grid_stage)
 
@@ -306,8 +301,8 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
         streams.append(lambda: _mixture_stream(problem, stream_key, s, mixture, done))
     est, fitted = switch(pilot.choice, streams)
     est = dataclasses.replace(est, n=est.n + pilot.evaluations)
-    options = [QMC()] + ([] if grid is None else [adaptive, through])
-    options += [] if mixture is None else [Importance(fitted)]
+    options = [QMC(), *([] if grid is None else [adaptive, through]),
+               *([] if mixture is None else [Importance(fitted)])]
     rounds = None if grid is None else grid.parts  # (read where `pilot.stages` says it ran)
     if is_concrete(pilot.choice):
         return Run(est, options[int(pilot.choice)], pilot, rounds)

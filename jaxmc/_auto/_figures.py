@@ -32,14 +32,12 @@ from .._diagnostics import (
 )
 
 
-# A figure from fewer effective points than this per replica (or i.i.d. group of the same
-# size) measured nothing: the replicas' means then rest on a handful of hits each, and their
-# spread says little of the variance.
+# Fewer effective points per replica than this measured nothing: the replicas' means rest
+# on a handful of hits each, and their spread says little of the variance.
 MIN_ESS_PER_REPLICA = 8.0
-# A density held fixed through its stream (QMC through a grid, a mixture) whose pilot values
-# have an effective sample size below this share of their number is no candidate: by the
-# library's own diagnostics (`jaxmc.stats.unreliable`) such weights carry the mean on a few
-# points, and its figure is itself unreliable.
+# A density held fixed through its stream whose pilot values have fewer effective points
+# than this share of their number is no candidate: by `jaxmc.stats.unreliable` a few
+# points carry its mean, and its figure is itself unreliable.
 MIN_ESS_SHARE = HEAVY_TAIL_ESS_SHARE
 
 

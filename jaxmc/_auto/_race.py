@@ -15,12 +15,10 @@ v_L$. Before the stage its candidates have only an outlook (what a density fitte
 pilot's values does on values it was not fitted to); the stage runs unless every one of
 them is hopeless: its optimistic bound, at that price, above the leader's pessimistic one.
 
-`integrate` runs the members of a `vmap`'s batch one after another, each with its own
-choice. Only an integrand written for a batch (`batched=True`) is vectorised, the figures
-batched, one per member. There each decision is pooled over the batch, so that every
-member takes the same path and the stream that runs is one program:
-a stage runs if any element would run it, and the winner minimises the sum of the
-logarithms of the elements' costs (their geometric mean).
+Under `vmap`, `integrate` runs the members one after another, each with its own choice;
+only an integrand written for a batch is vectorised. There each decision is pooled over
+the batch, so every member takes the same path: a stage runs if any member would run it,
+and the winner minimises the geometric mean of the members' costs.
 """
 
 from __future__ import annotations
