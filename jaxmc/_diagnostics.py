@@ -198,8 +198,9 @@ def unreliable(est: Any) -> jax.Array:
 
     True when any component has a tiny effective sample size (< 10, or < n/4 for
     tiny n), fewer than 10 non-zero contributions (or fewer than n), a Pareto
-    $\\hat k$ above 0.7 with an effective sample size below n/10, dropped non-finite values,
-    a variance outside its dtype's range (`variance_out_of_range`), a structured variance
+    $\\hat k$ above 0.7 with an effective sample size below n/10, dropped non-finite
+    values (not those `integrate(..., nonfinite="drop")` drops on request), a variance
+    outside its dtype's range (`variance_out_of_range`), a structured variance
     replaced by a much larger i.i.d. bound (`bounded_variance`); for combined rounds a $q$
     below 1e-3; for a tolerance run `converged` False; for an `Expectation` an unreliable
     evidence `norm`.
@@ -213,7 +214,9 @@ def _flags(est: Any) -> dict[str, jax.Array]:
     # shrink with `n` (all n non-zero, or an ess of n/4, is never flagged).
     n = jnp.asarray(est.n).astype(jnp.result_type(float))
     flags = {
-        "non-finite integrand values were dropped": est.n_nonfinite > 0,
+        # (`integrate(..., nonfinite="drop")` drops them on request: not news.)
+        "non-finite integrand values were dropped": (
+            (est.n_nonfinite > 0) & (getattr(est, "nonfinite", "raise") != "drop")),
         f"fewer than {MIN_NONZERO} samples were non-zero (a missed or barely hit peak?)": (
             (est.n_nonzero >= 0) & (est.n_nonzero < jnp.minimum(MIN_NONZERO, n))
         ),

@@ -167,8 +167,16 @@ def test_nonfinite_raises_or_drops():
     f = lambda x: jnp.where(x < 0.01, jnp.inf, 1.0)
     with pytest.raises(FloatingPointError, match="nonfinite='drop'"):
         jaxmc.integrate(jax.random.key(7), f, 0.0, 1.0, n=10_000, method="plain")
-    est = jaxmc.integrate(jax.random.key(7), f, 0.0, 1.0, n=10_000, method="plain", nonfinite="drop")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", jaxmc.ReliabilityWarning)  # (dropped on request: no news)
+        est = jaxmc.integrate(jax.random.key(7), f, 0.0, 1.0, n=10_000, method="plain",
+                              nonfinite="drop")
     assert 50 < est.n_nonfinite < 150 and np.isfinite(est.mean)
+    # One verdict: no warning, and the flags agree, eagerly and under jit.
+    assert not bool(jaxmc.stats.unreliable(est)) and not jaxmc.stats.reliability_reasons(est)
+    traced = jax.jit(lambda k: jaxmc.stats.unreliable(jaxmc.integrate(
+        k, f, 0.0, 1.0, n=10_000, method="plain", nonfinite="drop")))(jax.random.key(7))
+    assert not bool(traced)
 
 
 def test_progress_reports(capfd):

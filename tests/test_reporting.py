@@ -106,6 +106,11 @@ def test_summary_shows_the_race_and_its_winner():
     with pytest.raises(ValueError, match="outside `jit`"):
         jax.jit(lambda k: jaxmc.integrate(k, peak, [0.0] * 4, [1.0] * 4, n=4096,
                                           method="plain").summary())(jax.random.key(0))
+    # Chosen under jit, the result's name is "auto"; its summary names the winner.
+    traced = jax.jit(lambda k: jaxmc.integrate(k, peak, [0.0] * 4, [1.0] * 4, n=100_000))(
+        jax.random.key(0))
+    won = traced.pilot.candidates[int(traced.pilot.choice)]
+    assert traced.method == "auto" and f"method: {won}, the winner" in traced.summary()
 
 
 def test_summary_shows_the_grids_training_rounds():
