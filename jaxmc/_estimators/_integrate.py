@@ -121,7 +121,9 @@ class IntegrationEstimate(Estimate):
             lines.append(self.pilot.table())
         trained = self.pilot is None or bool(np.asarray(self.pilot.stages)[STAGES.index("grid")])
         if self.rounds is not None and trained and jnp.ndim(self.rounds.n) == 1:
-            lines.append("the grid's training rounds (VEGAS+, not in the estimate):")
+            lines.append("the grid's training rounds (VEGAS+, not in the estimate); each weighed "
+                         "by the variance\nof the round before it, as `jaxmc.fit.adapt` weighs "
+                         "them (none: fewer than 10 effective samples):")
             lines.append(combine(self.rounds, sequential=True).summary())
         dof = np.min(np.asarray(self.dof, float))
         lines.append("error bar: " + ("Gaussian (many degrees of freedom)" if not np.isfinite(dof)
@@ -174,7 +176,8 @@ def integrate(
       Jacobian stays bounded; see `jaxmc.methods.Mapped`), on a few thousand evaluations
       that count in `n`, and `method` streams on the finite box.
     - `rtol`, `atol`: tolerances on the standard error; give either or both, and/or `n`.
-    - `n`: the evaluation budget (a static int); with a tolerance too, a cap.
+    - `n`: the evaluation budget (a static int); with a tolerance too, a cap. At least 95% of
+      it is spent (whole nets and blocks; the result's `n` says how many).
     - `method`: a method of `jaxmc.methods`, or its name: `"auto"` (default: a pilot races
       QMC, the VEGAS+ grid, QMC through the grid and a mixture seeded from it; see
       `jaxmc.methods.Auto`), `"qmc"`, `"adaptive"`, `"grid_qmc"`, `"importance"`, `"plain"`,
