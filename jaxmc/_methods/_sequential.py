@@ -69,18 +69,13 @@ def sequential_run(method: AbstractMethod, key, problem: Problem, budget: int) -
                 full[i] = v
             return run(*jax.tree.unflatten(tree, full))
 
-        out, dout = jax.jvp(perturbed, [leaves[i] for i in live], [dleaves[i] for i in live])
-        return out, jax.tree.map(_instantiated, dout, out)
+        return jax.jvp(perturbed, [leaves[i] for i in live], [dleaves[i] for i in live])
 
     return differentiable(key, tuple(consts), arrays)
 
 
 def _is_zero(t) -> bool:
     return isinstance(t, jax.custom_derivatives.SymbolicZero)
-
-
-def _instantiated(t, like):
-    return jnp.zeros_like(like) if t is None else t
 
 
 def _hoisted(f, x):
