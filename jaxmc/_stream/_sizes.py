@@ -135,7 +135,7 @@ def sizes(
         if method == "adaptive":  # one VEGAS+ round per block, of the size it was trained at
             block = adaptive_block
         if method == "stratified":
-            per_axis = strata_per_axis(budget, block, d)
+            per_axis = cubic_strata(budget, block, d)
             strata = (per_axis,) * d
             block = per_axis**d
         blocks = budget // block
@@ -154,8 +154,8 @@ def sizes(
                  net_blocks=net_blocks)
 
 
-def strata_per_axis(budget: int, block: int, d: int) -> int:
-    """Strata per axis of a stratified block of at most `block` points: the most whose whole
+def cubic_strata(budget: int, block: int, d: int) -> int:
+    """Strata per axis of a cubic stratified block of at most `block` points: the most whose whole
     blocks leave at most `1/EXTRA_GRAIN` of `budget` unspent (fewer strata, more blocks)."""
     most = int(math.floor(block ** (1.0 / d) + 1e-9))
     if most < 2:
