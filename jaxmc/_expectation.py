@@ -37,7 +37,7 @@ from ._compiled import release_if_crowded
 from ._diagnostics import rounding_floor, warn_if_unreliable
 from ._fit._vegas import strata_per_axis, stratified_unit_points
 from ._integrand import bind, evaluate
-from ._stats import Estimate, estimate_fields, estimate_iid, stratified_estimate
+from ._stats import Estimate, estimate_fields, estimate_iid, scatter_bound, stratified_estimate
 from ._unbounded import axis_kinds, map_expectation
 from .fit import Integrand, VegasPlus
 from .proposals import GaussianMixture, Grid
@@ -58,6 +58,8 @@ DEFENSIVE = 0.1
 # The grid trains on exp(log pi - c), c the largest log pi seen, capped at exp(CAP) while c
 # catches up (squares stay finite in float32).
 CAP = 20.0
+# Standard deviations (of its logarithm) at which the rounds' scatter bounds the grid's figure.
+SCATTER_SIGMAS = 2.0
 MIN_N = 4096
 
 
@@ -168,7 +170,10 @@ def expectation(
        strongly correlated ones the grid's weights are heavy-tailed.
     4. `"auto"` (default) fits both and keeps the one whose last fitting
        round had the lower relative variance of $\hat Z$ per evaluation
-       (`pilot`).
+       (`pilot`); the grid's read at most at the pessimistic bound the
+       scatter of its last rounds' estimates gives, as `integrate`'s `auto`
+       reads a trained grid (one unresolved hypercube inflates a round's own
+       variance).
 
     The fitting rounds' evaluations count in `n` but not in the estimate,
     which uses fresh points from the frozen density (unbiased up to the ratio
@@ -326,19 +331,25 @@ def _train_grid(key, log_density, lo, hi, *, block: int, rounds: int, batched: b
         f = lambda x: jnp.exp(jnp.minimum(jnp.asarray(log_density(x), dtype) - scale, CAP))  # noqa: E731
         state, est, samples = rule.step(key_grid, index, eqx.combine(state, static), Integrand(f, batched))
         seen = scale + jnp.log(jnp.max(samples.fx))
-        scale = jnp.where(jnp.isfinite(seen), jnp.maximum(scale, seen), scale)
+        seen_scale = jnp.where(jnp.isfinite(seen), jnp.maximum(scale, seen), scale)
         # Only what is used is carried (the round's other diagnostics are then never computed).
         last = (est.mean, est.variance, samples.x, samples.importance_weights())
-        return (eqx.partition(state, eqx.is_array)[0], scale, last), None
+        # (Each round's evidence on one scale, for the rounds' scatter.)
+        return (eqx.partition(state, eqx.is_array)[0], seen_scale, last), jnp.log(est.mean) + scale
 
     # The last round's figures and samples are carried (one trace of the round).
     shapes = jax.eval_shape(lambda: round_((carry, scale, None), 0)[0][2])
     empty = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
-    (carry, _, last), _ = jax.lax.scan(round_, (carry, scale, empty), jnp.arange(rounds))
+    (carry, _, last), log_means = jax.lax.scan(round_, (carry, scale, empty), jnp.arange(rounds))
     mean, variance, x, weights = last
     state = eqx.combine(carry, static)
     mean2 = jnp.maximum(mean**2, jnp.finfo(dtype).tiny)
     relative_variance = jnp.where(mean > 0, variance * block / mean2, jnp.inf)
+    # The last round's variance comes from pairs of points in hypercubes, which a hypercube
+    # the grid has not yet resolved inflates: it is kept at most at the rounds' scatter's
+    # pessimistic bound, as `auto` reads a trained grid.
+    scatter = scatter_bound(jnp.exp(log_means - log_means[-1]), block, SCATTER_SIGMAS)
+    relative_variance = jnp.minimum(relative_variance, scatter)
     return state.grid, state.draw.counts, relative_variance, x, weights
 
 

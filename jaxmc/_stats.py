@@ -25,7 +25,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.scipy.special import betainc, ndtri
+from jax.scipy.special import betainc, ndtri, polygamma
 
 from ._diagnostics import (
     ReliabilityWarning as ReliabilityWarning,
@@ -161,6 +161,32 @@ def student_t_quantile(p: jax.Array, dof: jax.Array) -> jax.Array:
     x = jnp.maximum(0.5 * (low + high), jnp.finfo(p.dtype).tiny)
     t = jnp.sqrt(nu * (1.0 - x) / x)
     return jnp.where(finite, jnp.where(p > 0.5, t, -t), ndtri(p))
+
+
+# The rounds whose means' scatter checks the last round's own variance.
+SCATTER_ROUNDS = 5
+
+
+def scatter_bound(means: jax.Array, round_size: int, z) -> jax.Array:
+    r"""A pessimistic bound on the relative variance per evaluation of rounds of `round_size`
+    evaluations, from the scatter of their estimates `means` `(rounds, ...)` of one integral.
+
+    The last `SCATTER_ROUNDS` means (or all, if fewer) give the sample variance $s^2$ with $k$
+    = their count less one degrees of freedom; $\log s^2$ has standard deviation
+    $\sqrt{\psi'(k/2)}$ (the logarithm of a $\chi^2_k$ variable), and the bound is `z` of them
+    above: $s^2\,m/\bar\mu^2 \cdot e^{z\sqrt{\psi'(k/2)}}$. Rounds of a grid still adapting
+    scatter more than its last: the bound errs high. `inf` where it cannot be read (fewer
+    than two rounds, a mean of 0, values not finite)."""
+    recent = means[-SCATTER_ROUNDS:]
+    k = recent.shape[0] - 1
+    if k < 1:
+        return jnp.full((), jnp.inf, means.dtype)
+    centre = jnp.mean(recent, axis=0)
+    tiny = jnp.finfo(means.dtype).tiny
+    relative = jnp.sum(jnp.var(recent, axis=0, ddof=1) / jnp.maximum(centre**2, tiny))
+    bound = relative * round_size * jnp.exp(z * jnp.sqrt(polygamma(1, k / 2.0)))
+    readable = jnp.all(centre != 0) & jnp.isfinite(bound)
+    return jnp.where(readable, bound, jnp.inf)
 
 
 def check_level(level: float) -> None:

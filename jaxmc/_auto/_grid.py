@@ -7,17 +7,13 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.special import polygamma
 
 from .._diagnostics import bounded_variance, tail_of
 from .._integrand import ratio
 from .._methods._edged_grid import edged
+from .._stats import scatter_bound
 from ._figures import MIN_ESS_SHARE, Figure, blind, effective_points, iid_figure, relative_variance
 from ._nets import REPLICAS, credited, mapped_net_values, qmc_figure
-
-
-# The training rounds whose means' scatter checks the last round's own variance.
-SCATTER_ROUNDS = 5
 
 
 @partial(jax.jit, static_argnames="round_size")
@@ -28,19 +24,14 @@ def adaptive_figure(parts, samples, z, *, round_size) -> Figure:
     The figure is the last round's variance (its i.i.d. bound under a power-law tail, as the
     stream reports it there), times its points. That variance comes from pairs of points in
     hypercubes, which a peak the grid has not yet resolved inflates; the scatter of the last
-    `SCATTER_ROUNDS` rounds' means is a second estimate, with 4 degrees of freedom: the
-    figure is kept at most at the scatter's bound `z` standard deviations above it (the
-    logarithm of a $\chi^2_4$ variable has variance $\psi'(2)$). Its logarithm's standard
-    deviation is the last round's values' (`iid_figure`)."""
+    rounds' means is a second estimate: the figure is kept at most at its bound `z`
+    standard deviations above (`scatter_bound`). Its logarithm's standard deviation is the
+    last round's values' (`iid_figure`)."""
     values, _ = ratio(samples.fx, jnp.exp(samples.log_q))
     tail = tail_of(values)
     variance, _ = bounded_variance(parts.variance[-1], parts.mean[-1], tail)
     v_last = relative_variance(parts.mean[-1], variance) * round_size
-    recent = parts.mean[-SCATTER_ROUNDS:]
-    centre = jnp.mean(recent, axis=0)
-    v_scatter = relative_variance(centre, jnp.var(recent, axis=0, ddof=1)) * round_size
-    k = SCATTER_ROUNDS - 1
-    cap = v_scatter * jnp.exp(z * jnp.sqrt(polygamma(1, k / 2.0)))
+    cap = scatter_bound(parts.mean, round_size, z)
     seen = jnp.any(parts.mean[-1] != 0)
     own, _, _ = iid_figure(values)
     return Figure(jnp.where(seen, jnp.minimum(v_last, cap), jnp.inf), own.log_sd)
