@@ -175,18 +175,20 @@ def scatter_bound(means: jax.Array, round_size: int, z) -> jax.Array:
     = their count less one degrees of freedom; $\log s^2$ has standard deviation
     $\sqrt{\psi'(k/2)}$ (the logarithm of a $\chi^2_k$ variable), and the bound is `z` of them
     above: $s^2\,m/\bar\mu^2 \cdot e^{z\sqrt{\psi'(k/2)}}$. Rounds of a grid still adapting
-    scatter more than its last: the bound errs high. `inf` where it cannot be read (fewer
-    than two rounds, a mean of 0, values not finite)."""
+    scatter more than its last: the bound errs high. Summed over an array's components (one
+    whose rounds average 0 adds its plain variance); `inf` where it cannot be read (fewer
+    than two rounds, values not finite)."""
     recent = means[-SCATTER_ROUNDS:]
     k = recent.shape[0] - 1
     if k < 1:
         return jnp.full((), jnp.inf, means.dtype)
     centre = jnp.mean(recent, axis=0)
+    variance = jnp.var(recent, axis=0, ddof=1)
     tiny = jnp.finfo(means.dtype).tiny
-    relative = jnp.sum(jnp.var(recent, axis=0, ddof=1) / jnp.maximum(centre**2, tiny))
+    # (A component whose rounds all read 0 adds its variance, 0, not a ratio.)
+    relative = jnp.sum(jnp.where(centre != 0, variance / jnp.maximum(centre**2, tiny), variance))
     bound = relative * round_size * jnp.exp(z * jnp.sqrt(polygamma(1, k / 2.0)))
-    readable = jnp.all(centre != 0) & jnp.isfinite(bound)
-    return jnp.where(readable, bound, jnp.inf)
+    return jnp.where(jnp.isfinite(bound), bound, jnp.inf)
 
 
 def check_level(level: float) -> None:

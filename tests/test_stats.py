@@ -237,15 +237,16 @@ def test_the_rounds_scatter_bound_holds_as_often_as_chi_square_says():
     # Five rounds' means, normal about 2 with a per-evaluation relative variance of 0.3 (rounds
     # of 1000): the bound z = 2 log-standard-deviations above the scatter falls below the truth
     # when chi2_4 / 4 < exp(-2 sqrt(psi'(2))), a probability of 0.0618; over 4000 draws, within
-    # 5 binomial standard errors. Rounds before them, and rounds that read 0, are handled.
+    # 5 binomial standard errors. Rounds before the last five, off the mark, do not count.
     from jaxmc._stats import scatter_bound
 
     truth, size, draws = 0.3, 1000, 4000
     sd = 2.0 * np.sqrt(truth / size)
-    means = 2.0 + sd * jax.random.normal(jax.random.key(3), (draws, 8))  # (the last 5 count)
+    means = 2.0 + sd * jax.random.normal(jax.random.key(3), (draws, 8))
+    means = means.at[:, :3].add(1.0)  # (earlier rounds, off the mark: not counted)
     bounds = np.asarray(jax.vmap(lambda m: scatter_bound(m, size, 2.0))(means))
     cutoff = 4 * np.exp(-2 * np.sqrt(float(jax.scipy.special.polygamma(1, 2.0))))
     p = scipy.stats.chi2.cdf(cutoff, 4)
     assert abs(np.mean(bounds < truth) - p) < 5 * np.sqrt(p * (1 - p) / draws)
-    assert np.isinf(scatter_bound(jnp.array([1.0, 0.0, -1.0, 1.0, -1.0]), size, 2.0))
+    assert np.isinf(scatter_bound(jnp.array([1.0, jnp.nan, 1.0]), size, 2.0))
     assert np.isinf(scatter_bound(jnp.array([1.0]), size, 2.0))
