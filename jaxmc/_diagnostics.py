@@ -239,6 +239,12 @@ def _flags(est: Any) -> dict[str, jax.Array]:
             f"{CONSERVATIVE_RATIO:g}x that spread: an upper bound, likely far above the actual "
             "error"
         ] = est.conservative
+    beyond = getattr(est, "tail_beyond_map", None)  # `integrate` with infinite limits
+    if beyond is not None:
+        flags["the integrand decays so slowly along an infinite axis that the share of the "
+              "integral beyond the reach of the map of its infinite limits (never sampled) "
+              "exceeds the error bar: the estimate falls short; enable float64 or transform "
+              "the tail"] = jnp.asarray(beyond)
     if hasattr(est, "q"):
         flags[f"the combined rounds disagree (q < {MIN_Q:g})"] = est.q < MIN_Q
     if getattr(est, "converged", None) is not None:

@@ -29,8 +29,10 @@ $\log r$). Along one axis the map is bounded for $k \le a - 1$; along the diagon
 unbounded axes, where $m$ Jacobians multiply, for $\sum_j (k_j + 1) \le a_\mathrm{diag}$.
 `tail` is the largest $k$ both allow, between `MIN_TAIL` and `MAX_TAIL` (the rational
 map); an integrand decaying faster than any power gets `MAX_TAIL`. Where no map can bound
-$f\,|x'|$, the estimate's diagnostics (its
-tail index) flag the error bar.
+$f\,|x'|$ (a decay slower than $|x|^{-1.5}$ along an axis), the diagnostics read the values'
+power-law tail; and as the map reaches only some $10^{14}$ scales in float32 ($10^{32}$ in
+float64: where $1 - t$ meets the dtype's resolution), the share of so slow a tail's mass
+beyond it is estimated (`reach_loss`) and the estimate flagged where it exceeds the error bar.
 """
 
 from __future__ import annotations
@@ -83,13 +85,15 @@ class AxisMaps(eqx.Module):
 
     **Fields:** `kinds` (static, per axis), `anchor` (the centre $c$ of a two-sided axis,
     the finite end of a half-line), `scale` ($s$) and `tail` ($k$), each of the bounds'
-    shape; finite axes are the identity.
+    shape; finite axes are the identity. `beyond_reach`: the share of the integral the
+    map never samples, estimated from the measured decays (`reach_loss`).
     """
 
     kinds: tuple[int, ...] = eqx.field(static=True)
     anchor: jax.Array
     scale: jax.Array
     tail: jax.Array
+    beyond_reach: jax.Array = eqx.field(default_factory=lambda: np.asarray(0.0))
 
     def _masks(self, shape):
         kinds = np.reshape(np.asarray(self.kinds), shape)
@@ -242,8 +246,9 @@ def _fit_maps(key, f, lo, hi, *, kinds, pilot, batched, log_values):
         maps = _matched(maps, quartiles, maps.tail, seen)
 
     base = jnp.where(finite, jnp.clip(quartiles[1], lo, hi), quartiles[1])
-    tail = _tails(log_abs, base, maps.scale, kinds, dtype)
-    return _matched(maps, quartiles, tail, jnp.all(jnp.isfinite(quartiles)))
+    tail, decay = _tails(log_abs, base, maps.scale, kinds, dtype)
+    maps = _matched(maps, quartiles, tail, jnp.all(jnp.isfinite(quartiles)))
+    return eqx.tree_at(lambda m: m.beyond_reach, maps, reach_loss(tail, decay, dtype))
 
 
 def _matched(maps, quartiles, tail, ok):
@@ -257,7 +262,8 @@ def _matched(maps, quartiles, tail, ok):
     anchor = jnp.where(two & ok & jnp.isfinite(q50), q50, maps.anchor)
     return AxisMaps(maps.kinds, anchor.astype(maps.anchor.dtype),
                     jnp.where(good, scale, maps.scale).astype(maps.scale.dtype),
-                    jnp.asarray(tail, maps.tail.dtype) * jnp.ones_like(maps.tail))
+                    jnp.asarray(tail, maps.tail.dtype) * jnp.ones_like(maps.tail),
+                    maps.beyond_reach)
 
 
 def _weighted_quantiles(x: jax.Array, w: jax.Array, levels) -> jax.Array:
@@ -277,7 +283,8 @@ def _weighted_quantiles(x: jax.Array, w: jax.Array, levels) -> jax.Array:
 
 def _tails(log_abs, base, scale, kinds, dtype):
     """Each axis's `tail` $k$: the largest both its own decay exponent and the diagonal's
-    allow (module docstring), from `log_abs` at `PROBE_OCTAVES` scales out of `base`."""
+    allow (module docstring), from `log_abs` at `PROBE_OCTAVES` scales out of `base`; and
+    each axis's decay exponent (the slower of its own and its share of the diagonal's)."""
     shape, d = base.shape, len(kinds)
     kind = np.asarray(kinds)
     unbounded = kind != FINITE
@@ -305,6 +312,21 @@ def _tails(log_abs, base, scale, kinds, dtype):
     mine = owners[:, None] == np.arange(d)[None, :]
     along = jnp.min(jnp.where(mine, decay[:, None], jnp.inf), axis=0)
     diagonal = jnp.min(jnp.where(owners == -1, decay, jnp.inf))
-    tail = jnp.clip(jnp.minimum(along - 1.0, diagonal / int(unbounded.sum()) - 1.0),
-                    MIN_TAIL, MAX_TAIL)
-    return jnp.reshape(jnp.where(unbounded, tail, 1.0), shape).astype(dtype)
+    decay = jnp.minimum(along, diagonal / int(unbounded.sum()))
+    tail = jnp.clip(decay - 1.0, MIN_TAIL, MAX_TAIL)
+    decay = jnp.where(unbounded, decay, jnp.inf)
+    return (jnp.reshape(jnp.where(unbounded, tail, 1.0), shape).astype(dtype),
+            jnp.reshape(decay, shape).astype(dtype))
+
+
+def reach_loss(tail, decay, dtype) -> jax.Array:
+    r"""The share of the integral beyond the maps' reach: the largest over the axes of
+    $(R/s)^{1-a}$, the mass of a tail $|f| \propto |x|^{-a}$ (`decay`) beyond $R$ relative to
+    its mass from one scale $s$ out, with $R/s = k\,\epsilon^{-1/k}$ the farthest a map of
+    tail $k$ reaches from $1 - t = \epsilon$, the dtype's resolution near 1 ($2^{-24}$ in
+    float32: some $10^{14}$ scales for $k = 1/2$; $2^{-53}$ in float64). Negligible for any
+    tail the map bounds; a sizeable share, a bias, for one decaying slower than $|x|^{-1.5}$."""
+    eps = float(np.finfo(dtype).epsneg)
+    log_reach = jnp.log(tail) - jnp.log(eps) / tail
+    loss = jnp.exp(jnp.minimum(1.0 - decay, 0.0) * log_reach)
+    return jnp.max(jnp.where(jnp.isfinite(decay), loss, 0.0)).astype(dtype)

@@ -69,6 +69,18 @@ SMALL_CHUNK = 1 << 16
 MAX_N = 1 << 30  # default budget when only a tolerance is given
 
 
+class _Judged(Estimate):
+    """What `integrate`'s verdict (`converged`, the warning) reads: the estimate, with values
+    dropped on request not counted, and whether the integrand's tail is beyond its map."""
+
+    tail_beyond_map: jax.Array | bool = False
+
+
+def _beyond(est: Estimate, maps) -> jax.Array:
+    """Whether the integral's share beyond the maps' reach exceeds `est`'s standard error."""
+    return jnp.any(maps.beyond_reach * jnp.abs(est.mean) > est.stderr)
+
+
 class IntegrationEstimate(Estimate):
     r"""What `integrate` returns: an `Estimate` that says how it was made.
 
@@ -100,6 +112,14 @@ class IntegrationEstimate(Estimate):
     rounds: Estimate | None
     converged: jax.Array | None
     nonfinite: str = eqx.field(default="raise", static=True)
+
+    @property
+    def tail_beyond_map(self) -> jax.Array | None:
+        """With infinite limits, whether the share of the integral beyond the reach of the
+        map of its infinite axes (`AxisMaps.beyond_reach`) exceeds the error bar
+        (`jaxmc.stats.unreliable` then says so); else `None`."""
+        maps = getattr(self.plan, "maps", None)
+        return None if maps is None else _beyond(self, maps)
 
     def summary(self) -> str:
         """What made this estimate, as text (outside `jit`): the estimate and its counts, the
@@ -272,7 +292,9 @@ def integrate(
     if probes:
         est = dataclasses.replace(est, n=est.n + probes)
     # (Values dropped on request, with nonfinite="drop", are not news.)
-    judged = Estimate(**estimate_fields(est))
+    maps = getattr(plan, "maps", None)
+    judged = _Judged(**estimate_fields(est),
+                     tail_beyond_map=False if maps is None else _beyond(est, maps))
     if nonfinite == "drop":
         judged = eqx.tree_at(lambda e: e.n_nonfinite, judged, jnp.zeros_like(est.n_nonfinite))
     met = converged = None
