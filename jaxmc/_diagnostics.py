@@ -252,8 +252,11 @@ def _flags(est: Any) -> dict[str, jax.Array]:
             ~jnp.asarray(est.converged))
     norm = getattr(est, "norm", None)  # an `Expectation`'s evidence: a ratio's denominator
     if norm is not None:
+        # (An evidence whose error bar is a conservative bound leaves the ratio's own alone.)
+        norm_flags = _flags(eqx.tree_at(lambda e: e.conservative, norm,
+                                        jnp.zeros_like(norm.conservative)))
         flags["the evidence `norm` is unreliable (`reliability_reasons(est.norm)` says why; `log_norm` holds it where it under- or overflows)"] = (
-            jnp.any(jnp.stack([jnp.any(flag) for flag in _flags(norm).values()])))
+            jnp.any(jnp.stack([jnp.any(flag) for flag in norm_flags.values()])))
     return flags
 
 

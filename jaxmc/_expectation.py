@@ -58,7 +58,9 @@ class Expectation(Estimate):
 
     **Fields** (on top of `Estimate`'s):
 
-    - `norm`: an `Estimate` of $\int\pi$, the evidence (marginal likelihood).
+    - `norm`: an `Estimate` of $\int\pi$, the evidence (marginal likelihood). Where the
+      weights read a power-law tail its error bar is their i.i.d. bound, an upper bound
+      (`norm.conservative`, flagged on `norm` alone: the mean's error bar is its own).
       It underflows to 0 when $\log\int\pi$ is below about $-87$ in float32
       ($-708$ in float64): read `log_norm` then.
     - `log_norm`: an `Estimate` of $\log\int\pi$, with the delta-method
@@ -287,6 +289,7 @@ def _final(key, g, log_density, fitted: Fitted, *, plan: Plan, batched: bool, me
     n = jnp.asarray(PILOT + (plan.rounds + plan.mixture_rounds) * plan.block + m, jnp.int32)
     diagnostics = {k: getattr(weights, k)[0] for k in ("ess", "n_nonzero", "pareto_k")}
     common = dict(n=n, n_nonfinite=weights.n_nonfinite, **diagnostics)
+    evidence_bound = weights.conservative[0]
     relative = jnp.where(seen, weights.variance[0] / safe_z**2, jnp.inf)
     log_z = jnp.where(seen, jnp.log(safe_z) + top, -jnp.inf)
     norm = jnp.exp(log_z)
@@ -296,6 +299,10 @@ def _final(key, g, log_density, fitted: Fitted, *, plan: Plan, batched: bool, me
         mean=jnp.reshape(ratio, shape),
         variance=jnp.reshape(variance, shape),
         **per_component,
-        norm=Estimate(mean=norm, variance=norm**2 * relative, **common),
-        log_norm=Estimate(mean=log_z, variance=relative, **common),
+        # (Where the weights' stratified variance gave way to their i.i.d. bound, the
+        # evidence's error bar is that bound, and says so; the ratio's is its own.)
+        norm=Estimate(mean=norm, variance=norm**2 * relative, conservative=evidence_bound,
+                      **common),
+        log_norm=Estimate(mean=log_z, variance=relative, conservative=evidence_bound,
+                          **common),
     )

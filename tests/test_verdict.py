@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxmc
@@ -43,3 +44,23 @@ def test_an_expectation_is_unreliable_where_its_evidence_is():
     assert any("evidence" in reason for reason in reliability_reasons(est))
     # Its logarithm is representable, and trusted.
     assert not bool(unreliable(est.log_norm))
+
+
+def test_an_evidence_bounded_conservatively_says_so_and_leaves_the_mean_alone():
+    # A correlated Gaussian posterior on the plane: on some keys the grid's weights read a
+    # power-law tail and the evidence's error bar is their i.i.d. bound, several times the
+    # spread of the estimates. Those keys' evidence says it is an upper bound; the posterior
+    # mean, whose error bar is its own, is not flagged for it.
+    cov = jnp.array([[0.25, 0.9], [0.9, 4.0]])
+    mu, precision = jnp.array([0.7, -1.3]), jnp.linalg.inv(cov)
+    log_density = lambda x: -0.5 * (x - mu) @ precision @ (x - mu)  # noqa: E731
+    ests = [jaxmc.expectation(jax.random.key(seed), lambda x: x, log_density, [-jnp.inf] * 2,
+                              [jnp.inf] * 2, n=10**5) for seed in range(6)]
+    stderr = np.array([float(e.log_norm.stderr) for e in ests])
+    bounded = np.array([bool(e.log_norm.conservative) and bool(e.norm.conservative) for e in ests])
+    assert np.any(stderr > 3 * stderr.min())  # (the case this test is about)
+    assert np.all(bounded == (stderr > 3 * stderr.min())), (stderr, bounded)
+    assert all(bool(unreliable(e.norm)) == b for e, b in zip(ests, bounded))
+    assert not any(bool(unreliable(e)) for e in ests)
+    log_z = np.log(2 * np.pi * np.sqrt(np.linalg.det(np.asarray(cov))))
+    assert all(abs(float(e.log_norm.mean) - log_z) < 4 * float(e.log_norm.stderr) for e in ests)
