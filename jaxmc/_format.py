@@ -148,13 +148,17 @@ def concrete(tree: Any) -> bool:
 
 def estimate_str(e) -> str:
     """An `Estimate`'s mean and standard error in the compact notation, with `[dof N]` below
-    `FEW_DOF` degrees of freedom (its `repr` if traced)."""
+    `FEW_DOF` degrees of freedom (for an array whose elements' differ, each's, in order; its
+    `repr` if traced)."""
     if not concrete(e):
         return repr(e)
     text = compact_array(e.mean, np.sqrt(np.asarray(e.variance, float)))
     dof = np.asarray(getattr(e, "dof", np.inf), float)
     if np.any(dof < FEW_DOF):
-        text += f" [dof {np.min(dof):.0f}]"
+        if np.all(dof == dof.flat[0]):
+            text += f" [dof {dof.flat[0]:.0f}]"
+        else:  # (a batch whose members' error bars differ: each its own)
+            text += f" [dof {' '.join(f'{v:.0f}' for v in dof.flat)}]"
     return text
 
 

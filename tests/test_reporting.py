@@ -82,6 +82,11 @@ def test_str_says_when_an_error_bar_has_few_degrees_of_freedom():
     # mean +- 2 stderr of 3 replicas covers 82%, not 95%: the reader is told.
     assert str(hand_made(0.99771, 0.00423, dof=2.0)) == "0.9977(42) [dof 2]"
     assert str(hand_made(0.99771, 0.00423, dof=30.0)) == "0.9977(42)"
+    # A batch (from `vmap`) whose members' error bars differ: each member's, in order.
+    batch = hand_made([0.99771, 1.2345], [0.00423, 0.0123], dof=jnp.array([jnp.inf, 2.0]))
+    assert str(batch) == "[0.9977(42) 1.234(12)] [dof inf 2]"
+    same = hand_made([0.99771, 1.2345], [0.00423, 0.0123], dof=jnp.array([2.0, 2.0]))
+    assert str(same) == "[0.9977(42) 1.234(12)] [dof 2]"
     est = jaxmc.integrate(jax.random.key(0), lambda x: jnp.cos(jnp.sum(x)), [0.0] * 3,
                           [1.0] * 3, n=20_000, method="qmc")
     assert np.isfinite(float(est.dof)) and float(est.dof) < 10

@@ -141,9 +141,10 @@ class IntegrationEstimate(Estimate):
             lines.append(self.pilot.table())
         trained = self.pilot is None or bool(np.asarray(self.pilot.stages)[STAGES.index("grid")])
         if self.rounds is not None and trained and jnp.ndim(self.rounds.n) == 1:
-            lines.append("the grid's training rounds (VEGAS+, not in the estimate); each weighed "
-                         "by the variance\nof the round before it, as `jaxmc.fit.adapt` weighs "
-                         "them (none: fewer than 10 effective samples):")
+            lines.append("the grid's training rounds (VEGAS+, not in the estimate), averaged as "
+                         "`jaxmc.fit.adapt` averages them:\neach weighed by the variance of the "
+                         "round before it; a round of fewer than 10 effective\nsamples gets no "
+                         "weight:")
             lines.append(combine(self.rounds, sequential=True).summary())
         dof = np.min(np.asarray(self.dof, float))
         lines.append("error bar: " + ("Gaussian (many degrees of freedom)" if not np.isfinite(dof)
