@@ -44,6 +44,7 @@ from ._tail import (
     merge_tails,
     pareto_k,
     pareto_k_on,
+    pareto_k_sd,
     tail_of,
     tail_size,
     tail_sums,
@@ -127,24 +128,39 @@ STRUCTURED_MIN_TAIL = 64
 CONSERVATIVE_RATIO = 4.0
 
 
+# A top quarter whose shape reads this many standard deviations lighter than the whole
+# tail's is a bounded tail, not a power law (a one-sided test: a power law's top quarter
+# reads that much lighter by noise about once in a thousand tails).
+THRESHOLD_STABILITY_SIGMAS = 3.0
+
+
 @jax.jit
 def power_law_tail(t: Tail) -> jax.Array:
     """Whether the contributions have a power-law tail: an unbounded integrand, where
     structured (replica, stratum) spreads understate the error.
 
     Called where $\\hat k$ > `STRUCTURED_MAX_PARETO_K` on at least `STRUCTURED_MIN_TAIL`
-    exceedances, unless the largest quarter of them reads bounded ($\\hat k < 0$ on its
-    own). A power law is the same at every threshold (the generalised Pareto family is
-    closed under raising it: the exceedances over a higher threshold have the same $k$),
-    while values with a finite maximum, f/q through a density that tames a peak among them,
-    bend towards it: at moderate thresholds a bounded but skewed tail (a product of
-    bounded ratios, near log-normal) reads like a power law, and only its top shows the
-    bound. The prior of the fit, which pulls $\\hat k$ towards 1/2 by ten observations,
-    keeps a true power law's top quarter from reading below 0 by noise alone."""
+    exceedances, unless the largest quarter of them reads bounded. A power law is the same
+    at every threshold (the generalised Pareto family is closed under raising it: the
+    exceedances over a higher threshold have the same $k$), while values with a finite
+    maximum, f/q through a density that tames a peak among them, bend towards it: at
+    moderate thresholds a bounded but skewed tail (a product of bounded ratios, near
+    log-normal, or a few points in the corner of a box where f/q is largest) reads like a
+    power law, and only its top shows the bound. So the top quarter's own $\\hat k_{M/4}$
+    is compared with the whole tail's $\\hat k_M$; the tail is bounded when
+    $\\hat k_{M/4} < 0$, or when $\\hat k_M - \\hat k_{M/4}$ exceeds
+    `THRESHOLD_STABILITY_SIGMAS` times its standard deviation under a power law,
+    $\\sqrt{\\sigma^2_{M/4} - \\sigma^2_M}$ (nested estimates: the larger sample's
+    variance is the shared part), with $\\sigma_m$ that of a shape fitted to $m$ exceedances
+    (`pareto_k_sd`)."""
     size = tail_size(t.count)
-    top_k = pareto_k_on(jax.lax.optimization_barrier(t.top), jnp.floor(size / 4))
-    return ((pareto_k(t) > STRUCTURED_MAX_PARETO_K) & (size >= STRUCTURED_MIN_TAIL)
-            & ~(top_k < 0))
+    quarter = jnp.floor(size / 4)
+    k = pareto_k(t)
+    top_k = pareto_k_on(jax.lax.optimization_barrier(t.top), quarter)
+    spread = jnp.sqrt(jnp.maximum(
+        pareto_k_sd(k, quarter) ** 2 - pareto_k_sd(k, size) ** 2, 0.0))
+    bends = (top_k < 0) | (k - top_k > THRESHOLD_STABILITY_SIGMAS * spread)
+    return (k > STRUCTURED_MAX_PARETO_K) & (size >= STRUCTURED_MIN_TAIL) & ~bends
 
 
 @jax.jit

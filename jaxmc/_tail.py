@@ -186,6 +186,14 @@ def pareto_k(t: Tail) -> jax.Array:
     return pareto_k_on(top, tail_size(count))
 
 
+def pareto_k_sd(k: jax.Array, m_tail: jax.Array) -> jax.Array:
+    r"""The standard deviation of `pareto_k`'s estimate on `m_tail` exceedances of a
+    generalised Pareto tail of shape $k$: the maximum-likelihood estimate's $(1 + k)/\sqrt M$
+    (Smith, 1987, for $k > -1/2$), scaled by the prior's shrinkage $M/(M + 10)$."""
+    m = jnp.maximum(m_tail, 1)
+    return (1 + jnp.maximum(k, -0.5)) * jnp.sqrt(m) / (m + _PRIOR_K)
+
+
 def pareto_k_on(top: jax.Array, m_tail: jax.Array) -> jax.Array:
     """`pareto_k`'s estimate on the `m_tail` exceedances over `top[m_tail]`."""
     m_int = m_tail.astype(jnp.int32)
