@@ -149,13 +149,17 @@ def test_the_map_puts_its_quartiles_on_the_integrand():
     np.testing.assert_allclose(quartile, 0.6745 * scale, rtol=0.15)
 
 
-def test_the_maps_jacobian_is_the_derivative_of_the_map():
+@pytest.mark.parametrize("tails", [(1.0, 3.0, MIN_TAIL, 1.0), (1.0, 1.0, 1.0, 1.0)],
+                         ids=["powers", "rational"])
+def test_the_maps_jacobian_is_the_derivative_of_the_map(tails):
     maps = AxisMaps((1, 2, 3, 0), jnp.asarray([0.5, -1.0, 2.0, 0.0]),
-                    jnp.asarray([2.0, 0.7, 1.3, 1.0]), jnp.asarray([1.0, 3.0, MIN_TAIL, 1.0]))
+                    jnp.asarray([2.0, 0.7, 1.3, 1.0]), jnp.asarray(tails))
     for t in ([0.3, 0.5, 0.9, 0.2], [-0.99, 0.01, 0.5, 0.7]):
         t = jnp.asarray(t, jnp.float64)
         jac = jax.jacfwd(lambda s: maps(s)[0])(t)
         np.testing.assert_allclose(np.log(np.prod(np.abs(np.diag(jac)))), maps(t)[1], rtol=1e-10)
+        np.testing.assert_allclose(np.prod(np.abs(np.diag(jac))), maps.with_jacobian(t)[1],
+                                   rtol=1e-10)
         np.testing.assert_allclose(jac - np.diag(np.diag(jac)), 0.0)
     # Monotone, onto the whole line or half-line.
     t = jnp.linspace(-1 + 1e-9, 1 - 1e-9, 1001)
@@ -163,6 +167,18 @@ def test_the_maps_jacobian_is_the_derivative_of_the_map():
     assert np.all(np.diff(x[:, :3], axis=0)[:, [0, 1]] > 0) and np.all(np.diff(x[:, 2]) < 0)
     assert x[0, 0] < -1e4 and x[-1, 0] > 1e4 and x[-1, 1] > 1e3 and x[-1, 2] < -1e3
     np.testing.assert_allclose([x[500, 0], x[0, 1], x[0, 2]], [0.5, -1.0, 2.0], atol=1e-6)
+
+
+def test_the_rational_maps_are_the_powers_at_tail_one():
+    # k = 1 takes a path without logarithms and powers; it is the same map.
+    maps = AxisMaps((1, 2, 3, 0), jnp.asarray([0.5, -1.0, 2.0, 0.0]),
+                    jnp.asarray([2.0, 0.7, 1.3, 1.0]), jnp.ones(4))
+    u = jax.random.uniform(jax.random.key(0), (1000, 4), jnp.float64)
+    t = jnp.stack([2 * u[:, 0] - 1, u[:, 1], u[:, 2], u[:, 3]], axis=1)
+    assert bool(maps.rational)
+    for got, want in zip(maps._rational(t), maps._powers(t)):
+        got = np.log(np.prod(got, axis=-1)) if got.shape != want.shape else got
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
 def test_an_untameable_tail_is_flagged():
