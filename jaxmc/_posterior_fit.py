@@ -169,7 +169,8 @@ def _fit_mixture(key, log_density, x, weights, lo, hi, *, block: int, rounds: in
 
     def refit(carry, index):
         x, weights = carry
-        q = _defensive(GaussianMixture.from_samples(x, weights, lo, hi, components), x, weights)
+        q = _defensive(GaussianMixture.from_samples(x, weights, lo, hi, components,
+                                                    until_noise=True), x, weights)
         x, _ = q.sample(jax.random.fold_in(key, index), block)
         w, _, _ = weights_of(log_pi(log_density, x, batched, dtype), q.log_pdf(x))
         mean = jnp.mean(w)  # > 0: the largest weight is 1 unless all are 0

@@ -93,6 +93,7 @@ class GaussianMixture(AbstractProposal):
         iterations: int = 50,
         min_scale: float = 0.01,
         prior: float = 1.0,
+        until_noise: bool = False,
     ) -> GaussianMixture:
         r"""Fit a mixture to weighted samples by expectation-maximisation.
 
@@ -121,9 +122,16 @@ class GaussianMixture(AbstractProposal):
         $f$) each get a component; the scales start at the weighted standard
         deviation of all samples.
 
+        With `until_noise`, EM stops early, once a step gains less in the weighted mean
+        log-likelihood $\bar\ell = \sum_i w_i \log p(x_i)$ than its sampling error,
+        $\mathrm{sd}_w(\log p)/\sqrt{\mathrm{ESS}}$: further steps fit the sample's noise,
+        not $|f|$. The loop is then a `lax.while_loop`, which reverse-mode derivatives cannot
+        pass (the samples and weights are taken as constants).
+
         **Arguments:** `x` `(m, d)` (or `(m,)` for scalar bounds); `weights`
         `(m,)`; `lo`, `hi` the box; `components` $K \le m$; `iterations` EM
-        steps (static); `min_scale`, `prior` as above.
+        steps (static; at most this many with `until_noise`); `min_scale`, `prior` as
+        above.
 
         **Returns:** a `GaussianMixture` (a good start for `fit` or `adapt`).
         """
@@ -169,8 +177,7 @@ class GaussianMixture(AbstractProposal):
         xc = x - centre
         xc2 = xc * xc
 
-        def em(carry, _):
-            log_pi, means, scales = carry
+        def step(log_pi, means, scales):
             mc = means - centre
             precision = scales**-2  # (K, d)
             # sum_d (x_d - mu_kd)^2 / sigma_kd^2, expanded
@@ -191,9 +198,32 @@ class GaussianMixture(AbstractProposal):
             new_means = jnp.where(alive[:, None], new_means, means)
             new_scales = jnp.where(alive[:, None], new_scales, scales)
             new_log_pi = jnp.log(jnp.maximum(mass, 1e-12))
-            return (new_log_pi - jax.nn.logsumexp(new_log_pi), new_means, new_scales), None
+            new = (new_log_pi - jax.nn.logsumexp(new_log_pi), new_means, new_scales)
+            return new, jax.nn.logsumexp(log_n, axis=-1)  # (and log p(x_i) before the step)
 
-        (log_pi, means, scales), _ = jax.lax.scan(em, (log_pi, means, scales), None, iterations)
+        if until_noise:
+            x, w, xc, xc2, centre, spread, tau, start = jax.lax.stop_gradient(
+                (x, w, xc, xc2, centre, spread, tau, (log_pi, means, scales)))
+            ess = 1 / jnp.maximum(jnp.sum(w**2), jnp.finfo(w.dtype).tiny)
+
+            def go_on(carry):
+                _, count, _, gain, noise = carry
+                return (count < iterations) & ((count < 2) | (gain >= noise))
+
+            def em_until(carry):
+                params, count, before, _, _ = carry
+                new, log_p = step(*params)
+                now = jnp.sum(w * log_p)  # the mean log-likelihood of `params`
+                noise = jnp.sqrt(jnp.sum(w * (log_p - now) ** 2) / ess)
+                return new, count + 1, now, now - before, noise
+
+            zero = jnp.zeros((), x.dtype)
+            (log_pi, means, scales), _, _, _, _ = jax.lax.while_loop(
+                go_on, em_until, (start, 0, zero, zero, zero))
+        else:
+            (log_pi, means, scales), _ = jax.lax.scan(
+                lambda params, _: (step(*params)[0], None), (log_pi, means, scales), None,
+                iterations)
         gm = cls(jax.random.key(0), lo, hi, components)
         return eqx.tree_at(
             lambda g: (g.logits, g.means, g.log_scales),
