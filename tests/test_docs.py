@@ -1,5 +1,8 @@
 """The documentation's examples run as a new user runs them: each page's python blocks in
-order, in a fresh interpreter with JAX's defaults (float32)."""
+order, in a fresh interpreter with JAX's defaults (float32). Only compilation differs: the
+tests' fast-compiling flags (`helpers.SUBPROCESS_XLA_FLAGS`) and the run's compilation
+cache, as the notebooks' tests compile (compilation is most of a page's time; the pages
+check that the examples run and raise no reliability warning, not their digits)."""
 
 import os
 import pathlib
@@ -8,6 +11,8 @@ import subprocess
 import sys
 
 import pytest
+
+from .helpers import subprocess_xla_flags
 
 
 DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs"
@@ -22,7 +27,11 @@ PAGES = sorted(str(p.relative_to(DOCS)) for p in DOCS.rglob("*.md")
 def test_a_pages_examples_run(page, tmp_path):
     text = (DOCS / page).read_text(encoding="utf-8")
     code = "\n".join(re.findall(r"```python\n(.*?)```", text, re.S))
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    env.update(XLA_FLAGS=subprocess_xla_flags(),
+               JAX_COMPILATION_CACHE_DIR=os.environ["JAXMC_TEST_XLA_CACHE"],
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
     # (In a temporary folder: an example may write a file, and JAX's cache goes there too.)
     code = code.replace("/tmp/jax_cache", str(tmp_path / "jax_cache"))
     # (A reliability warning in an example would greet a newcomer: it fails the page.)
