@@ -125,8 +125,9 @@ class GaussianMixture(AbstractProposal):
         With `until_noise`, EM stops early, once a step gains less in the weighted mean
         log-likelihood $\bar\ell = \sum_i w_i \log p(x_i)$ than its sampling error,
         $\mathrm{sd}_w(\log p)/\sqrt{\mathrm{ESS}}$: further steps fit the sample's noise,
-        not $|f|$. The loop is then a `lax.while_loop`, which reverse-mode derivatives cannot
-        pass (the samples and weights are taken as constants).
+        not $|f|$. The loop is then a `lax.while_loop`, which reverse mode cannot
+        differentiate: the samples and weights are taken as constants there, and the fit
+        carries no derivative.
 
         **Arguments:** `x` `(m, d)` (or `(m,)` for scalar bounds); `weights`
         `(m,)`; `lo`, `hi` the box; `components` $K \le m$; `iterations` EM
