@@ -72,6 +72,8 @@ __all__ = [
     "bounded_variance",
     "effective_sample_size",
     "pareto_k",
+    "pareto_k_sd",
+    "tail_size",
     "unreliable",
     "reliability_reasons",
     "warn_if_unreliable",

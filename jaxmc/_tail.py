@@ -186,12 +186,13 @@ def pareto_k(t: Tail) -> jax.Array:
     return pareto_k_on(top, tail_size(count))
 
 
-def pareto_k_sd(k: jax.Array, m_tail: jax.Array) -> jax.Array:
-    r"""The standard deviation of `pareto_k`'s estimate on `m_tail` exceedances of a
-    generalised Pareto tail of shape $k$: the maximum-likelihood estimate's $(1 + k)/\sqrt M$
-    (Smith, 1987, for $k > -1/2$), scaled by the prior's shrinkage $M/(M + 10)$."""
+def pareto_k_sd(k: jax.Array, m_tail: jax.Array, *, prior: bool = True) -> jax.Array:
+    r"""The standard deviation of a generalised Pareto shape $k$ estimated on `m_tail`
+    exceedances: the maximum-likelihood estimate's $(1 + k)/\sqrt M$ (Smith, 1987, for
+    $k > -1/2$), with `prior` scaled by `pareto_k`'s shrinkage $M/(M + 10)$."""
     m = jnp.maximum(m_tail, 1)
-    return (1 + jnp.maximum(k, -0.5)) * jnp.sqrt(m) / (m + _PRIOR_K)
+    sd = (1 + jnp.maximum(k, -0.5)) / jnp.sqrt(m)
+    return sd * m / (m + _PRIOR_K) if prior else sd
 
 
 def pareto_k_on(top: jax.Array, m_tail: jax.Array) -> jax.Array:

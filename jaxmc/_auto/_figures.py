@@ -26,9 +26,10 @@ import jax.numpy as jnp
 from .._diagnostics import (
     HEAVY_TAIL_ESS_SHARE,
     STRUCTURED_MAX_PARETO_K,
-    TAIL,
     pareto_k,
+    pareto_k_sd,
     tail_of,
+    tail_size,
 )
 
 
@@ -94,9 +95,7 @@ def tail_evidence(values, z) -> tuple[jax.Array, jax.Array]:
     above it by chance."""
     tail = tail_of(values)
     k = pareto_k(tail)
-    count = tail.count
-    exceedances = jnp.floor(jnp.minimum(jnp.minimum(count / 5, 3 * jnp.sqrt(count)), TAIL))
-    error = (1 + jnp.maximum(k, 0)) / jnp.sqrt(jnp.maximum(exceedances, 1))
+    error = pareto_k_sd(jnp.maximum(k, 0), tail_size(tail.count), prior=False)
     return (jnp.any(k > STRUCTURED_MAX_PARETO_K),
             jnp.any(k - z * error > STRUCTURED_MAX_PARETO_K))
 

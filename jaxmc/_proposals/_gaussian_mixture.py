@@ -203,8 +203,9 @@ class GaussianMixture(AbstractProposal):
             return new, jax.nn.logsumexp(log_n, axis=-1)  # (and log p(x_i) before the step)
 
         if until_noise:
-            x, w, xc, xc2, centre, spread, tau, start = jax.lax.stop_gradient(
-                (x, w, xc, xc2, centre, spread, tau, (log_pi, means, scales)))
+            # (What `step` reads, and where it starts.)
+            w, xc, xc2, centre, spread, tau, start = jax.lax.stop_gradient(
+                (w, xc, xc2, centre, spread, tau, (log_pi, means, scales)))
             ess = 1 / jnp.maximum(jnp.sum(w**2), jnp.finfo(w.dtype).tiny)
 
             def go_on(carry):
