@@ -233,7 +233,7 @@ def _flags(est: Any) -> dict[str, jax.Array]:
     n = jnp.asarray(est.n).astype(jnp.result_type(float))
     flags = {
         # (`integrate(..., nonfinite="drop")` drops them on request: not news.)
-        "non-finite integrand values were dropped": (
+        "non-finite integrand values were seen (counted in `n_nonfinite`)": (
             (est.n_nonfinite > 0) & (getattr(est, "nonfinite", "raise") != "drop")),
         f"fewer than {MIN_NONZERO} samples were non-zero (a missed or barely hit peak?)": (
             (est.n_nonzero >= 0) & (est.n_nonzero < jnp.minimum(MIN_NONZERO, n))

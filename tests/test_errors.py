@@ -1,5 +1,7 @@
 """Clear errors: every bad input or unsupported use names the argument and says what to do."""
 
+import os
+import pathlib
 import re
 
 import equinox as eqx
@@ -33,6 +35,31 @@ def test_nonfinite_values_say_what_happened_and_what_to_do():
     # (Dropped on request: counted, not warned about; `stats.unreliable` still says so.)
     est = jaxmc.integrate(KEY, LOG, [0.0], [1.0], n=2**12, nonfinite="drop")
     assert np.isfinite(est.mean) and 0 < int(est.n_nonfinite) < 2**12
+
+
+def test_nonfinite_nan_poisons_the_estimate_and_leaves_a_cacheable_program():
+    # nonfinite="nan": no runtime check; the estimate is NaN, counted and flagged, eagerly
+    # (with the reliability warning) and under jit. A program under jit with "raise" holds
+    # the check's host callback, which JAX's persistent cache refuses to store; with "nan"
+    # it is stored.
+    with pytest.warns(jaxmc.ReliabilityWarning, match="non-finite"):
+        est = jaxmc.integrate(KEY, LOG, [0.0], [1.0], n=2**12, nonfinite="nan")
+    assert np.isnan(est.mean) and np.isnan(est.variance) and int(est.n_nonfinite) > 0
+    assert bool(jaxmc.stats.unreliable(est))
+
+    def nonfinite_nan_run(k):
+        return jaxmc.integrate(k, LOG, [0.0], [1.0], n=2**12, method="plain", nonfinite="nan")
+
+    def nonfinite_raise_run(k):
+        return jaxmc.integrate(k, lambda x: x[0], [0.0], [1.0], n=2**12, method="plain")
+
+    traced = jax.jit(nonfinite_nan_run)(KEY)
+    assert np.isnan(traced.mean) and int(traced.n_nonfinite) > 0
+    jax.block_until_ready(jax.jit(nonfinite_raise_run)(KEY))
+    # (The run's persistent cache: tests/conftest.py. JAX names an entry after the function.)
+    entries = [p.name for p in pathlib.Path(os.environ["JAXMC_TEST_XLA_CACHE"]).iterdir()]
+    assert any("nonfinite_nan_run" in name for name in entries), entries
+    assert not any("nonfinite_raise_run" in name for name in entries), entries
 
 
 def test_reverse_mode_through_a_tolerance_asks_for_a_fixed_n():

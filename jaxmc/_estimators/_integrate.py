@@ -101,9 +101,9 @@ class IntegrationEstimate(Estimate):
     - `converged`: with a tolerance, whether the standard error met it and the diagnostics
       trust it (`stats.unreliable` of the estimate is False: never where no value was
       non-zero or the variance left its dtype's range); else `None`.
-    - `nonfinite`: what `integrate` was asked to do with non-finite values, `"raise"` or
-      `"drop"`. Values dropped on request are counted in `n_nonfinite` but do not make the
-      estimate unreliable.
+    - `nonfinite`: what `integrate` was asked to do with non-finite values, `"raise"`,
+      `"drop"` or `"nan"`. Values dropped on request are counted in `n_nonfinite` but do
+      not make the estimate unreliable.
     """
 
     method: str = eqx.field(static=True)
@@ -212,7 +212,11 @@ def integrate(
       dimensions, at most $2^{20}$ coordinates; $2^{16}$ at most from a mixture): bounds
       the memory; results do not depend on it beyond float rounding.
     - `nonfinite`: `"raise"` (default) raises `FloatingPointError` when some $f/p$ was not
-      finite; `"drop"` lets those samples contribute zero (counted in `n_nonfinite`).
+      finite (under `jit`, a runtime error); `"drop"` lets those samples contribute zero
+      (counted in `n_nonfinite`); `"nan"` makes the estimate NaN (mean and variance;
+      counted, and `stats.unreliable` says why). Under `jit` the runtime error of `"raise"`
+      is a host callback, and JAX's persistent compilation cache does not keep programs
+      that hold one: `"drop"` or `"nan"` lets a re-run script start warm.
     - `mesh`: a `jax.sharding.Mesh` whose devices share the blocks (default: the context
       mesh of `jax.set_mesh`, else all devices of the default backend).
     - `progress`: show a progress bar (tqdm) with the running estimate.
@@ -250,7 +254,7 @@ def integrate(
         raise ValueError(
             "`method` is a plan made on a finite box, and `lo`/`hi` hold infinite limits; "
             "pass the method's name (e.g. 'auto') to fit a map of the infinite axes.")
-    nonfinite = check_choice(nonfinite, "nonfinite", ("raise", "drop"))
+    nonfinite = check_choice(nonfinite, "nonfinite", ("raise", "drop", "nan"))
     rtol = check_tolerance(rtol, "rtol", lo.dtype)
     atol = check_tolerance(atol, "atol", lo.dtype)
     progress = check_flag(progress, "progress")
@@ -312,6 +316,8 @@ def integrate(
         est = _forward_mode_only(est)
     if nonfinite == "raise":
         est = _raise_on_nonfinite(est)
+    elif nonfinite == "nan":
+        est = _nan_on_nonfinite(est)
     # (Out of range, the reliability warning below says why, and what to do.)
     if (tolerant and is_concrete(met) and not bool(met)
             and not bool(jnp.any(variance_out_of_range(est)))):
@@ -381,6 +387,14 @@ def _raise_on_nonfinite(est: Estimate) -> Estimate:
             )
         return est
     return eqx.error_if(est, est.n_nonfinite > 0, _NONFINITE_MESSAGE)
+
+
+def _nan_on_nonfinite(est: Estimate) -> Estimate:
+    """`est` with its mean and variance NaN where some value was not finite: no runtime
+    check, so a program under `jit` holds no host callback."""
+    bad = est.n_nonfinite > 0
+    return dataclasses.replace(est, mean=jnp.where(bad, jnp.nan, est.mean),
+                               variance=jnp.where(bad, jnp.nan, est.variance))
 
 
 _REVERSE_MODE_MESSAGE = (
