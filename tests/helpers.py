@@ -9,6 +9,7 @@ for essentially every choice of keys.
 import contextlib
 import logging
 import os
+import pathlib
 
 import equinox as eqx
 import jax
@@ -226,3 +227,11 @@ def compilations():
     finally:
         for logger in loggers:
             logger.removeHandler(handler)
+
+
+def persistently_cached(name: str) -> bool:
+    """Whether the run's persistent compilation cache (tests/conftest.py) holds a program
+    compiled from a function called `name` (JAX names an entry after the jitted function):
+    JAX does not store a program that holds a host callback."""
+    cache = pathlib.Path(os.environ["JAXMC_TEST_XLA_CACHE"])
+    return any(name in entry.name for entry in cache.iterdir())

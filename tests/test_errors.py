@@ -1,7 +1,5 @@
 """Clear errors: every bad input or unsupported use names the argument and says what to do."""
 
-import os
-import pathlib
 import re
 
 import equinox as eqx
@@ -12,6 +10,8 @@ import pytest
 
 import jaxmc
 from jaxmc.proposals import GaussianMixture, Grid, Uniform
+
+from .helpers import persistently_cached
 
 
 KEY = jax.random.key(0)
@@ -56,10 +56,8 @@ def test_nonfinite_nan_poisons_the_estimate_and_leaves_a_cacheable_program():
     traced = jax.jit(nonfinite_nan_run)(KEY)
     assert np.isnan(traced.mean) and int(traced.n_nonfinite) > 0
     jax.block_until_ready(jax.jit(nonfinite_raise_run)(KEY))
-    # (The run's persistent cache: tests/conftest.py. JAX names an entry after the function.)
-    entries = [p.name for p in pathlib.Path(os.environ["JAXMC_TEST_XLA_CACHE"]).iterdir()]
-    assert any("nonfinite_nan_run" in name for name in entries), entries
-    assert not any("nonfinite_raise_run" in name for name in entries), entries
+    assert persistently_cached("nonfinite_nan_run")
+    assert not persistently_cached("nonfinite_raise_run")
 
 
 def test_reverse_mode_through_a_tolerance_asks_for_a_fixed_n():

@@ -2,8 +2,6 @@
 (unbiased, the same eagerly and under `jit`, better than its baseline, plans that stream at
 once)."""
 
-import os
-import pathlib
 import re
 import warnings
 
@@ -35,6 +33,7 @@ from .helpers import (
     compilations,
     cos_product,
     peak,
+    persistently_cached,
 )
 
 
@@ -225,15 +224,13 @@ def test_eager_and_jit_give_the_same_estimate(kind):
     eager = jaxmc.integrate(key, f, lo, hi, n=n)
 
     # (With every value finite, nonfinite="nan" returns what the default returns, and leaves
-    # no host callback in the program: JAX's persistent cache, the run's (tests/conftest.py),
-    # then keeps it, under an entry named after the function.)
+    # no host callback in the program: JAX's persistent cache then keeps it.)
     def run(k):
         return jaxmc.integrate(k, f, lo, hi, n=n, nonfinite="nan")
 
     run.__name__ = f"traced_auto_{kind}"
     traced = jax.jit(run)(key)
-    cache = pathlib.Path(os.environ["JAXMC_TEST_XLA_CACHE"])
-    assert any(run.__name__ in entry.name for entry in cache.iterdir())
+    assert persistently_cached(run.__name__)
     assert traced.method == "auto" and isinstance(traced.plan, jaxmc.methods.OneOf)
     assert int(traced.pilot.choice) == int(eager.pilot.choice)
     np.testing.assert_array_equal(traced.pilot.stages, eager.pilot.stages)
