@@ -160,7 +160,7 @@ class _Look(eqx.Module):
 def _look(y, bins, growths, price, *, z, costs):
     """QMC's pilot nets measured (projected `growths`-fold: to the stream after this stage and
     after the grid's), and whether the grid's stage, at `price`, is worth running."""
-    both = nets_figures(y, bins, growths, z)
+    both = nets_figures(y, bins, growths)
     nets, after = (eqx.tree_at(lambda n: n.qmc, both, jax.tree.map(lambda a: a[k], both.qmc))
                    for k in (0, 1))
     go_on = grid_can_win(nets, np.asarray(costs, y.dtype), price, z)

@@ -47,7 +47,12 @@ def grid_qmc_values(key, grid, f, batched, log2_size):
 def grid_qmc_figure(y, growth, *, z) -> Figure:
     """QMC's figure through the grid, from its nets' values `y` `(R, m, ...)` (as QMC's own,
     `qmc_figure`, projected `growth`-fold): no candidate where the values saw nothing or
-    have fewer effective points than `MIN_ESS_SHARE` of their number (a loose fit)."""
+    have fewer effective points than `MIN_ESS_SHARE` of their number (a loose fit).
+
+    Credited with plain MC's variance where the values' tail is a power law evident at `z`
+    standard errors (`tail_evidence`), not by the stream's own test as QMC's figure is
+    (`nets_figures`): on f/q through a grid that test at the pilot's size does not say what
+    it says at the stream's, where it also calls bounded but skewed values heavy."""
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
     plain, _, evident = iid_figure(flat, z)
     figure = credited(qmc_figure(y, growth), plain, evident)

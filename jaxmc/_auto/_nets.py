@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._box import to_box
+from .._diagnostics import power_law_tail, tail_of
 from .._integrand import ratio
 from .._points._sobol import sobol_scramble
 from .._stream._blocks import replica_points, values
@@ -137,15 +138,16 @@ def qmc_figure(y, growths) -> Figure:
                   jnp.where(finite, jnp.sqrt(spread), jnp.inf))
 
 
-def nets_figures(y, bins, growth, z) -> NetFigures:
+def nets_figures(y, bins, growth) -> NetFigures:
     """`NetFigures` of the pilot's values `y` `(R, m, ...)` in `bins` (`net_values`), QMC's
-    projected `growth`-fold (a tuple: stacked, one per growth). Under a power-law tail evident
-    at `z` standard errors QMC is credited with plain MC's variance (which its stream reports
-    there, `bounded_variance`), as is QMC through a density of the values it streams."""
+    projected `growth`-fold (a tuple: stacked, one per growth). Where QMC's stream would
+    report plain MC's variance, the i.i.d. bound, QMC is credited with it: where the values'
+    tail passes the test the stream applies to its own (`power_law_tail`, as
+    `bounded_variance` does)."""
     replicas = y.shape[0]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    plain, suspected, evident = iid_figure(flat, z)
-    qmc = credited(qmc_figure(y, growth), plain, evident)
+    plain, suspected, _ = iid_figure(flat)
+    qmc = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail_of(flat))))
     return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y))
 
 
