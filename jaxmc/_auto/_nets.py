@@ -146,8 +146,9 @@ def nets_figures(y, bins, growth) -> NetFigures:
     `bounded_variance` does)."""
     replicas = y.shape[0]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    plain, suspected, _ = iid_figure(flat)
-    qmc = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail_of(flat))))
+    tail = tail_of(flat)  # (the largest values found once, for both tests)
+    plain, suspected, _ = iid_figure(flat, tail=tail)
+    qmc = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail)))
     return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y))
 
 
