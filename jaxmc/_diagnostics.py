@@ -154,15 +154,29 @@ def power_law_tail(t: Tail) -> jax.Array:
     `THRESHOLD_STABILITY_SIGMAS` times its standard deviation under a power law,
     $\\sqrt{\\sigma^2_{M/4} - \\sigma^2_M}$ (nested estimates: the larger sample's
     variance is the shared part), with $\\sigma_m$ that of a shape fitted to $m$ exceedances
-    (`pareto_k_sd`)."""
+    (`pareto_k_sd`).
+
+    Where the contributions are $f/q$ for a density bounded below, $q \\ge q_0 > 0$ (a
+    grid's), $f/q \\le f/q_0$: the tail of $f/q$ has the same index as that of $f$'s own
+    values, and is bounded where $f$ is. The values of $f/q$ often are not clean: at
+    moderate sizes a grid that tames a peak leaves a long bounded tail, $f/q$ rising towards
+    the inner edges of its outer bins, that reads as a power law at every threshold the
+    sample reaches. $f$'s own largest values (`Tail.f_top`) show the bound there: a peak's
+    cluster below its maximum ($\\hat k < 0$), and a singularity's keep the power law. So
+    the call also needs $f$'s tail not light, $\\hat k_f > 0$ (a generalised Pareto tail with
+    $k \\le 0$ has every moment); a tail of index $1/4$ reads $\\hat k_f \\le 0$ by noise
+    with probability about $\\Phi(-2.5)$ on 128 exceedances. Where no $f$ was given,
+    `f_top` is `top` and this adds nothing."""
     size = tail_size(t.count)
     quarter = jnp.floor(size / 4)
     k = pareto_k(t)
-    top_k = pareto_k_on(jax.lax.optimization_barrier(t.top), quarter)
+    top, f_top = jax.lax.optimization_barrier((t.top, t.f_top))
+    top_k = pareto_k_on(top, quarter)
     spread = jnp.sqrt(jnp.maximum(
         pareto_k_sd(k, quarter) ** 2 - pareto_k_sd(k, size) ** 2, 0.0))
     bends = (top_k < 0) | (k - top_k > THRESHOLD_STABILITY_SIGMAS * spread)
-    return (k > STRUCTURED_MAX_PARETO_K) & (size >= STRUCTURED_MIN_TAIL) & ~bends
+    f_light = pareto_k_on(f_top, size) <= 0
+    return (k > STRUCTURED_MAX_PARETO_K) & (size >= STRUCTURED_MIN_TAIL) & ~bends & ~f_light
 
 
 @jax.jit

@@ -264,10 +264,14 @@ def merge_all(stacked: Moments) -> Moments:
     tail = None
     if stacked.tail is not None:
         t = stacked.tail
-        top = jnp.moveaxis(t.top, 0, -2)
+
+        def pooled(top):
+            top = jnp.moveaxis(top, 0, -2)
+            return largest(jnp.reshape(top, top.shape[:-2] + (-1,)), -1)
+
         tail = Tail(jnp.sum(t.count, axis=0), jnp.sum(t.abs_sum, axis=0),
-                    jnp.sum(t.sq_sum, axis=0), jnp.sum(t.nonzero, axis=0),
-                    largest(jnp.reshape(top, top.shape[:-2] + (-1,)), -1))
+                    jnp.sum(t.sq_sum, axis=0), jnp.sum(t.nonzero, axis=0), pooled(t.top),
+                    pooled(t.f_top))
     return Moments(count, mean, m2, tail)
 
 

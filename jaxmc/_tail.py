@@ -4,7 +4,7 @@ A Monte Carlo mean averages contributions $c_i = f(x_i)/p(x_i)$; whether its
 error bar can be believed depends on how their largest values behave. `Tail`
 holds what that needs and merges exactly over blocks, devices and rounds: the
 count, $\sum|c_i|$, $\sum c_i^2$, the non-zero count and the `TAIL + 1` largest
-$|c_i|$. `pareto_k` fits a generalised Pareto distribution to the exceedances
+$|c_i|$, and of $|f(x_i)|$ where a density divides $f$. `pareto_k` fits a generalised Pareto distribution to the exceedances
 of the largest of them over the next one (Zhang and Stephens, 2009, with the
 prior of Pareto-smoothed importance sampling: Vehtari, Simpson, Gelman, Yao and
 Gabry, 2024). `jaxmc._diagnostics` reads them.
@@ -29,7 +29,9 @@ class Tail(NamedTuple):
     `count` (scalar float) counts the contributions; `abs_sum` $\\sum|c_i|$,
     `sq_sum` $\\sum c_i^2$ and `nonzero` (float) have the value's shape; `top`
     holds the `TAIL + 1` largest $|c_i|$ in decreasing order along its last
-    axis (zeros while fewer were seen).
+    axis (zeros while fewer were seen); `f_top` the same of the integrand's own values
+    $|f(x_i)|$ where $c_i = f(x_i)/q(x_i)$ for a density $q$ bounded below (a grid's), and
+    `top` again where the caller gives no $f$ (a uniform density, where $c \\propto f$).
     """
 
     count: jax.Array
@@ -37,6 +39,7 @@ class Tail(NamedTuple):
     sq_sum: jax.Array
     nonzero: jax.Array
     top: jax.Array
+    f_top: jax.Array
 
 
 # Groups of this many entries in which `largest` looks for the largest ones first.
@@ -86,22 +89,27 @@ def _top_indices(a: jax.Array, k: int) -> jax.Array:
 
 
 @jax.jit
-def tail_of(c: jax.Array, valid: jax.Array | None = None) -> Tail:
-    """The `Tail` of contributions `c` `(n, ...)` (rows where `valid`)."""
+def tail_of(c: jax.Array, valid: jax.Array | None = None, f: jax.Array | None = None) -> Tail:
+    """The `Tail` of contributions `c` `(n, ...)` (rows where `valid`), with `f` `(n, ...)`
+    the integrand's values where `c` is $f/q$ for a density $q$ bounded below."""
     c = jnp.asarray(c)
     if valid is not None:
         mask = jnp.reshape(valid, valid.shape + (1,) * (c.ndim - 1))
         c = jnp.where(mask, c, 0)
+        f = None if f is None else jnp.where(mask, jnp.asarray(f), 0)
         count = jnp.sum(valid).astype(c.dtype)
     else:
         count = jnp.asarray(c.shape[0], c.dtype)
     a = jnp.abs(c)
+    top = largest(a, 0)
+    f_top = top if f is None else largest(jnp.abs(jnp.where(jnp.isfinite(f), f, 0)).astype(c.dtype), 0)
     return jax.lax.optimization_barrier(Tail(
         count=count,
         abs_sum=jnp.sum(a, axis=0),
         sq_sum=jnp.sum(a * a, axis=0),
         nonzero=jnp.sum(a > 0, axis=0).astype(c.dtype),
-        top=largest(a, 0),
+        top=top,
+        f_top=f_top,
     ))
 
 
@@ -111,18 +119,21 @@ def tail_sums(c: jax.Array) -> Tail:
     its sums only, for a loop that needs the largest values of a few rounds alone (their
     search is half the time of a VEGAS+ round of 2048 points on a CPU)."""
     a = jnp.abs(jnp.asarray(c))
+    top = jnp.zeros(a.shape[1:] + (TAIL + 1,), a.dtype)
     return Tail(
         count=jnp.asarray(a.shape[0], a.dtype),
         abs_sum=jnp.sum(a, axis=0),
         sq_sum=jnp.sum(a * a, axis=0),
         nonzero=jnp.sum(a > 0, axis=0).astype(a.dtype),
-        top=jnp.zeros(a.shape[1:] + (TAIL + 1,), a.dtype),
+        top=top,
+        f_top=top,
     )
 
 
 def empty_tail(shape: tuple[int, ...], dtype) -> Tail:
     zero = jnp.zeros(shape, dtype)
-    return Tail(jnp.zeros((), dtype), zero, zero, zero, jnp.zeros(shape + (TAIL + 1,), dtype))
+    top = jnp.zeros(shape + (TAIL + 1,), dtype)
+    return Tail(jnp.zeros((), dtype), zero, zero, zero, top, top)
 
 
 @jax.jit
@@ -134,6 +145,7 @@ def merge_tails(a: Tail, b: Tail) -> Tail:
         a.sq_sum + b.sq_sum,
         a.nonzero + b.nonzero,
         largest(jnp.concatenate([a.top, b.top], axis=-1), -1),
+        largest(jnp.concatenate([a.f_top, b.f_top], axis=-1), -1),
     )
 
 
@@ -142,15 +154,19 @@ def gather_tails(t: Tail, axes: tuple[str, ...]) -> Tail:
     # Every device's values placed in its own row and summed: a psum, unlike all_gather,
     # gives a value that is the same on every device (as shard_map's scan carry must be).
     devices = jax.lax.axis_size(axes)
-    rows = jnp.zeros((devices,) + t.top.shape, t.top.dtype).at[jax.lax.axis_index(axes)].set(t.top)
-    rows = jax.lax.psum(rows, axes)
-    top = jnp.concatenate([rows[j] for j in range(devices)], axis=-1)
+
+    def gathered(top):
+        rows = jnp.zeros((devices,) + top.shape, top.dtype).at[jax.lax.axis_index(axes)].set(top)
+        rows = jax.lax.psum(rows, axes)
+        return largest(jnp.concatenate([rows[j] for j in range(devices)], axis=-1), -1)
+
     return Tail(
         jax.lax.psum(t.count, axes),
         jax.lax.psum(t.abs_sum, axes),
         jax.lax.psum(t.sq_sum, axes),
         jax.lax.psum(t.nonzero, axes),
-        largest(top, -1),
+        gathered(t.top),
+        gathered(t.f_top),
     )
 
 

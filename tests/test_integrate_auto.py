@@ -138,7 +138,7 @@ def test_a_figures_uncertainty_is_what_it_varies_by():
     @jax.vmap
     def figures(key):
         y, _ = net_values(key, lo, hi, f, False, 0, 4, 7)
-        plain, _, _ = iid_figure(jax.vmap(f)(jax.random.uniform(key, (4096, 3))))
+        plain, _ = iid_figure(jax.vmap(f)(jax.random.uniform(key, (4096, 3))))
         return qmc_figure(y, 4.0), plain
 
     qmc, plain = figures(jax.random.split(jax.random.key(0), 40))
@@ -175,7 +175,7 @@ def test_the_product_outlook_reads_what_a_product_density_can_do():
     for f, gain in ((product, 20.0), (ridge, None)):
         y, bins = net_values(key, lo, hi, f, False, 0, 4, 8)
         outlook = product_outlook(bins, y)
-        plain, _, _ = iid_figure(jnp.reshape(y, (-1,)))
+        plain, _ = iid_figure(jnp.reshape(y, (-1,)))
         ratio = float(plain.value) / float(outlook.value)
         if gain:
             assert ratio > gain, ratio

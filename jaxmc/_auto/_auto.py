@@ -259,8 +259,8 @@ def _race(auto: Auto, key, problem: Problem, budget: int, sizing: int) -> Run:
         training = train(train_key, problem, sizing, fine=look.nets.heavy)
         grid = training.state.grid
         figure = adaptive_figure(training.parts, training.samples, z, round_size=s.round_size)
-        y = grid_qmc_values(grid_key, grid, f, batched, s.per_replica.bit_length() - 1)
-        through = grid_qmc_figure(y, np.asarray(after_grid, dtype), z=z)
+        y, fx = grid_qmc_values(grid_key, grid, f, batched, s.per_replica.bit_length() - 1)
+        through = grid_qmc_figure(y, fx, np.asarray(after_grid, dtype))
         seeded, outlook = None, jnp.full((), jnp.inf, lo.dtype)
         modes, misses = None, jnp.asarray(False)
         if s.mixture_n:

@@ -27,9 +27,7 @@ from .._diagnostics import (
     HEAVY_TAIL_ESS_SHARE,
     STRUCTURED_MAX_PARETO_K,
     pareto_k,
-    pareto_k_sd,
     tail_of,
-    tail_size,
 )
 
 
@@ -86,26 +84,21 @@ def effective_points(values) -> jax.Array:
                    / jnp.maximum(jnp.sum(flat**2, axis=0), tiny))
 
 
-def tail_evidence(values, z, tail=None) -> tuple[jax.Array, jax.Array]:
-    r"""Whether `values` `(n, ...)` have a power-law tail: `(suspected, evident)`, their Pareto
-    $\hat k$ above `STRUCTURED_MAX_PARETO_K` (1/4, where `jaxmc.stats` bounds a structured
-    variance by the i.i.d. one), and above it by `z` standard errors, $(1 + \hat k)/\sqrt{M}$
-    for $M$ exceedances (the generalised Pareto fit's asymptotic error): on a few thousand
-    values $\hat k$ is uncertain by about 0.1, and bounded values (a sum's exponential) read
-    above it by chance. `tail`: the values' `tail_of`, where the caller has it."""
+def suspected_tail(values, tail=None) -> jax.Array:
+    r"""Whether `values` `(n, ...)` may have a power-law tail: their Pareto $\hat k$ above
+    `STRUCTURED_MAX_PARETO_K` (1/4, where `jaxmc.stats` bounds a structured variance by the
+    i.i.d. one); their kurtosis, and with it the figure's uncertainty, is then not known.
+    `tail`: the values' `tail_of`, where the caller has it."""
     tail = tail_of(values) if tail is None else tail
-    k = pareto_k(tail)
-    error = pareto_k_sd(jnp.maximum(k, 0), tail_size(tail.count), prior=False)
-    return (jnp.any(k > STRUCTURED_MAX_PARETO_K),
-            jnp.any(k - z * error > STRUCTURED_MAX_PARETO_K))
+    return jnp.any(pareto_k(tail) > STRUCTURED_MAX_PARETO_K)
 
 
-def iid_figure(values, z=0.0, tail=None) -> tuple[Figure, jax.Array, jax.Array]:
+def iid_figure(values, tail=None) -> tuple[Figure, jax.Array]:
     r"""The figure of i.i.d. `values` `(n, ...)` ($f/p$ at points drawn from $p$): the sample's
     relative variance per evaluation, $\log$'s standard deviation $\sqrt{(\kappa - 1)/n}$ from
-    the kurtosis $\kappa$ of their magnitudes, and whether their tail is a power law, suspected
-    and evident at `z` standard errors (`tail_evidence`, given the values' `tail` where the
-    caller has it). A sample whose mean is 0 measured nothing (`inf`)."""
+    the kurtosis $\kappa$ of their magnitudes, and whether their tail may be a power law
+    (`suspected_tail`, given the values' `tail` where the caller has it). A sample whose mean
+    is 0 measured nothing (`inf`)."""
     n = values.shape[0]
     mean = jnp.mean(values, axis=0)
     v = relative_variance(mean, jnp.var(values, axis=0, ddof=1))
@@ -114,17 +107,17 @@ def iid_figure(values, z=0.0, tail=None) -> tuple[Figure, jax.Array, jax.Array]:
     m2 = jnp.mean(centred**2)
     kurtosis = jnp.mean(centred**4) / jnp.maximum(m2**2, jnp.finfo(a.dtype).tiny)
     log_sd = jnp.sqrt(jnp.maximum(kurtosis - 1, 2.0) / n)
-    suspected, evident = tail_evidence(values, z, tail)
+    suspected = suspected_tail(values, tail)
     seen = jnp.any(mean != 0)
     return (Figure(jnp.where(seen, v, jnp.inf), jnp.where(seen & ~suspected, log_sd, jnp.inf)),
-            suspected, evident)
+            suspected)
 
 
 def frozen_figure(values, misses_mass=False) -> Figure:
     """`iid_figure` of the values $f/q$ of a density held fixed through its stream, no
     candidate (`inf`) below `MIN_ESS_SHARE` effective points, unless `misses_mass` says the
     alternative (a grid) misses a mode this density holds."""
-    figure, _, _ = iid_figure(values)
+    figure, _ = iid_figure(values)
     loose = (effective_points(values) < MIN_ESS_SHARE * values.shape[0]) & ~misses_mass
     return Figure(jnp.where(loose, jnp.inf, figure.value), figure.log_sd)
 

@@ -8,7 +8,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from .._diagnostics import bounded_variance, tail_of
+from .._diagnostics import bounded_variance, power_law_tail, tail_of
 from .._integrand import ratio
 from .._methods._edged_grid import edged
 from .._stats import scatter_bound
@@ -33,7 +33,7 @@ def adaptive_figure(parts, samples, z, *, round_size) -> Figure:
     v_last = relative_variance(parts.mean[-1], variance) * round_size
     cap = scatter_bound(parts.mean, round_size, z)
     seen = jnp.any(parts.mean[-1] != 0)
-    own, _, _ = iid_figure(values)
+    own, _ = iid_figure(values)
     return Figure(jnp.where(seen, jnp.minimum(v_last, cap), jnp.inf), own.log_sd)
 
 
@@ -43,19 +43,18 @@ def grid_qmc_values(key, grid, f, batched, log2_size):
     return mapped_net_values(key, edged(grid), f, batched, log2_size)
 
 
-@partial(jax.jit, static_argnames="z")
-def grid_qmc_figure(y, growth, *, z) -> Figure:
+@jax.jit
+def grid_qmc_figure(y, fx, growth) -> Figure:
     """QMC's figure through the grid, from its nets' values `y` `(R, m, ...)` (as QMC's own,
-    `qmc_figure`, projected `growth`-fold): no candidate where the values saw nothing or
-    have fewer effective points than `MIN_ESS_SHARE` of their number (a loose fit).
-
-    Credited with plain MC's variance where the values' tail is a power law evident at `z`
-    standard errors (`tail_evidence`), not by the stream's own test as QMC's figure is
-    (`nets_figures`): on f/q through a grid that test at the pilot's size does not say what
-    it says at the stream's, where it also calls bounded but skewed values heavy."""
+    `qmc_figure`, projected `growth`-fold), `fx` the integrand's values there: no candidate
+    where the values saw nothing or have fewer effective points than `MIN_ESS_SHARE` of
+    their number (a loose fit). Credited with plain MC's variance where the stream would
+    report it, by the stream's own test (`power_law_tail`, given f's values, as the stream
+    through a grid gives them), as QMC's figure is (`nets_figures`)."""
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    plain, _, evident = iid_figure(flat, z)
-    figure = credited(qmc_figure(y, growth), plain, evident)
+    tail = tail_of(flat, f=jnp.reshape(fx, flat.shape))
+    plain, _ = iid_figure(flat, tail=tail)
+    figure = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail)))
     loose = effective_points(flat) < MIN_ESS_SHARE * flat.shape[0]
     unfit = loose | blind(flat, REPLICAS)
     return Figure(jnp.where(unfit, jnp.inf, figure.value), figure.log_sd)

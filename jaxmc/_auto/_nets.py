@@ -91,9 +91,10 @@ def _per_replica(fx, p):
 
 def mapped_net_values(key, density, f, batched, log2_size):
     r"""The values $f/q$ `(REPLICAS, 2**log2_size, ...)` of whole nets carried through a
-    map `density` (a trained grid's: $x = G(u)$, $q$ its density)."""
+    map `density` (a trained grid's: $x = G(u)$, $q$ its density), and $f$ there (flat)."""
     x, q = _mapped_points(key, density, log2_size=log2_size)
-    return _per_replica(values(x, f=f, batched=batched), q)
+    fx = values(x, f=f, batched=batched)
+    return _per_replica(fx, q), fx
 
 
 @partial(jax.jit, static_argnames="log2_size")
@@ -147,7 +148,7 @@ def nets_figures(y, bins, growth) -> NetFigures:
     replicas = y.shape[0]
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
     tail = tail_of(flat)  # (the largest values found once, for both tests)
-    plain, suspected, _ = iid_figure(flat, tail=tail)
+    plain, suspected = iid_figure(flat, tail=tail)
     qmc = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail)))
     return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y))
 

@@ -182,14 +182,14 @@ def step_moments(ctx: Context, fx, points, *, sizes):
     if values_ is not None:
         # One search for the largest values among all the step's blocks: a block's own
         # search and the merges of their tails cost twice as much (on a CPU).
-        y, valid = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + a.shape[2:]), values_)
-        m = m._replace(tail=tail_of(y, valid))
+        y, valid, f = jax.tree.map(lambda a: jnp.reshape(a, (-1,) + a.shape[2:]), values_)
+        m = m._replace(tail=tail_of(y, valid, f))
     return m, jnp.sum(evaluations, dtype=jnp.int32), jnp.sum(bad, dtype=jnp.int32)
 
 
 def _block_moments(ctx: Context, b, inside, fx, aux, *, sizes):
     """Block `b`'s moments from its values `fx`: `(moments, evaluations, non-finite values,
-    (its values f/p and which count) or None)`."""
+    (its values f/p, which count, and f itself through a grid's map, else None) or None)`."""
     method = sizes.method
     dtype = ctx.lo.dtype
     if method == "adaptive":
@@ -222,7 +222,9 @@ def _block_moments(ctx: Context, b, inside, fx, aux, *, sizes):
         m = _one_hot_moments(m._replace(count=m.count * sizes.block * weight), replica,
                              sizes.replicas)
     evaluations = jnp.sum(valid, dtype=jnp.int32)
-    return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid)
+    # Through a grid's map (bounded below) the tail test reads f's own values too.
+    through_grid = fx if method == "qmc" and ctx.frozen is not None else None
+    return m, evaluations, jnp.sum(bad & valid, dtype=jnp.int32), (y, valid, through_grid)
 
 
 def _one_hot_moments(m: Moments, slot, slots: int) -> Moments:
