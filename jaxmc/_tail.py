@@ -4,10 +4,10 @@ A Monte Carlo mean averages contributions $c_i = f(x_i)/p(x_i)$; whether its
 error bar can be believed depends on how their largest values behave. `Tail`
 holds what that needs and merges exactly over blocks, devices and rounds: the
 count, $\sum|c_i|$, $\sum c_i^2$, the non-zero count and the `TAIL + 1` largest
-$|c_i|$, and of $|f(x_i)|$ where a density divides $f$. `pareto_k` fits a generalised Pareto distribution to the exceedances
-of the largest of them over the next one (Zhang and Stephens, 2009, with the
-prior of Pareto-smoothed importance sampling: Vehtari, Simpson, Gelman, Yao and
-Gabry, 2024). `jaxmc._diagnostics` reads them.
+$|c_i|$ (and $|f(x_i)|$ where a grid's density divides $f$). `pareto_k` fits a
+generalised Pareto distribution to the exceedances of the largest of them over the
+next one (Zhang and Stephens, 2009, with the prior of Pareto-smoothed importance
+sampling: Vehtari, Simpson, Gelman, Yao and Gabry, 2024). `jaxmc._diagnostics` reads them.
 """
 
 from __future__ import annotations
@@ -102,7 +102,10 @@ def tail_of(c: jax.Array, valid: jax.Array | None = None, f: jax.Array | None = 
         count = jnp.asarray(c.shape[0], c.dtype)
     a = jnp.abs(c)
     top = largest(a, 0)
-    f_top = top if f is None else largest(jnp.abs(jnp.where(jnp.isfinite(f), f, 0)).astype(c.dtype), 0)
+    if f is None:
+        f_top = top
+    else:
+        f_top = largest(jnp.abs(jnp.where(jnp.isfinite(f), f, 0)).astype(c.dtype), 0)
     return jax.lax.optimization_barrier(Tail(
         count=count,
         abs_sum=jnp.sum(a, axis=0),
