@@ -8,12 +8,12 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from .._diagnostics import bounded_variance, power_law_tail, tail_of
+from .._diagnostics import bounded_variance, tail_of
 from .._integrand import ratio
 from .._methods._edged_grid import edged
 from .._stats import scatter_bound
 from ._figures import MIN_ESS_SHARE, Figure, blind, effective_points, iid_figure, relative_variance
-from ._nets import REPLICAS, credited, mapped_net_values, qmc_figure
+from ._nets import REPLICAS, credited_figures, mapped_net_values
 
 
 @partial(jax.jit, static_argnames="round_size")
@@ -48,13 +48,10 @@ def grid_qmc_figure(y, fx, growth) -> Figure:
     """QMC's figure through the grid, from its nets' values `y` `(R, m, ...)` (as QMC's own,
     `qmc_figure`, projected `growth`-fold), `fx` the integrand's values there: no candidate
     where the values saw nothing or have fewer effective points than `MIN_ESS_SHARE` of
-    their number (a loose fit). Credited with plain MC's variance where the stream would
-    report it, by the stream's own test (`power_law_tail`, given f's values, as the stream
-    through a grid gives them), as QMC's figure is (`nets_figures`)."""
+    their number (a loose fit). Credited as its stream would report it, given f's values as
+    that stream through a grid gives them (`credited_figures`), as QMC's figure is."""
+    figure, _, _ = credited_figures(y, growth, fx)
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    tail = tail_of(flat, f=jnp.reshape(fx, flat.shape))
-    plain, _ = iid_figure(flat, tail=tail)
-    figure = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail)))
     loose = effective_points(flat) < MIN_ESS_SHARE * flat.shape[0]
     unfit = loose | blind(flat, REPLICAS)
     return Figure(jnp.where(unfit, jnp.inf, figure.value), figure.log_sd)

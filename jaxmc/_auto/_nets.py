@@ -141,22 +141,27 @@ def qmc_figure(y, growths) -> Figure:
 
 def nets_figures(y, bins, growth) -> NetFigures:
     """`NetFigures` of the pilot's values `y` `(R, m, ...)` in `bins` (`net_values`), QMC's
-    projected `growth`-fold (a tuple: stacked, one per growth). Where QMC's stream would
-    report plain MC's variance, the i.i.d. bound, QMC is credited with it: where the values'
-    tail passes the test the stream applies to its own (`power_law_tail`, as
-    `bounded_variance` does)."""
-    replicas = y.shape[0]
+    projected `growth`-fold (a tuple: stacked, one per growth) and credited as its stream
+    would report it (`credited_figures`)."""
+    qmc, plain, suspected = credited_figures(y, growth)
     flat = jnp.reshape(y, (-1,) + y.shape[2:])
-    tail = tail_of(flat)  # (the largest values found once, for both tests)
+    return NetFigures(qmc, plain, suspected, blind(flat, y.shape[0]), product_outlook(bins, y))
+
+
+def credited_figures(y, growth, fx=None) -> tuple[Figure, Figure, jax.Array]:
+    """QMC's figure from replicas `y` `(R, m, ...)` projected `growth`-fold (`qmc_figure`),
+    plain MC's on the same values (`iid_figure`) and whether their tail may be a power law:
+    `(qmc, plain, suspected)`. Where the stream would report plain MC's variance, the i.i.d.
+    bound, QMC is credited with it: where the values' tail passes the stream's own test
+    (`power_law_tail`, as `bounded_variance` applies it; given `fx`, the integrand's values
+    there, flat, as a stream through a grid's map gives them)."""
+    flat = jnp.reshape(y, (-1,) + y.shape[2:])
+    tail = tail_of(flat, f=None if fx is None else jnp.reshape(fx, flat.shape))
     plain, suspected = iid_figure(flat, tail=tail)
-    qmc = credited(qmc_figure(y, growth), plain, jnp.any(power_law_tail(tail)))
-    return NetFigures(qmc, plain, suspected, blind(flat, replicas), product_outlook(bins, y))
-
-
-def credited(qmc: Figure, plain: Figure, heavy) -> Figure:
-    """QMC's figure where the values have a power-law tail: plain MC's, if larger."""
+    heavy = jnp.any(power_law_tail(tail))
+    qmc = qmc_figure(y, growth)
     value = jnp.where(heavy, jnp.maximum(qmc.value, plain.value), qmc.value)
-    return Figure(value, jnp.where(heavy, jnp.inf, qmc.log_sd))
+    return Figure(value, jnp.where(heavy, jnp.inf, qmc.log_sd)), plain, suspected
 
 
 def product_outlook(bins, y) -> Figure:
